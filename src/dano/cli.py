@@ -1,0 +1,129 @@
+"""The `dano` command: thin subcommands that parse, call the library and print."""
+
+import argparse
+import json
+import sys
+
+import numpy as np
+
+from dano.errors import DanoError
+
+
+def _build(args: argparse.Namespace) -> None:
+    from dano.build import build_dano, field_from_source
+    from dano.io import save_dano
+    from dano.types import DANO
+
+    if args.mass is not None and args.alpha is not None:
+        raise DanoError("give --mass or --alpha, not both")
+    window = _parse_window(args.window)
+    source = field_from_source(args.source, scale=args.scale, resolution=args.resolution, repair=args.repair)
+    if isinstance(source, DANO):
+        dano = source if args.mass is None else source.with_mass(args.mass)
+        if args.alpha is not None:
+            dano = dano.with_mass(float(dano.mass) * args.alpha / float(dano.alpha))
+    else:
+        alpha = 1.0 if args.alpha is None else args.alpha
+        if args.mass is None and args.alpha is None:
+            print("note: no --mass or --alpha: mass scale alpha = 1 (mass is known only up to alpha)", file=sys.stderr)
+        dano = build_dano(
+            source, n_points=args.points, alpha=alpha, mass=args.mass, window=window, seed=args.seed,
+            normals=args.normals, source=args.source,
+        )  # fmt: skip
+    save_dano(args.output, dano)
+    print(f"wrote {args.output}: mass {float(dano.mass):.6g} kg, {dano.n_points} points")
+
+
+def _parse_window(text: str | None) -> tuple[float, float] | None:
+    if text is None:
+        return None
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        raise DanoError(f"--window takes LOW,HIGH densities, got {text!r}") from None
+    return low, high
+
+
+def info_dict(dano) -> dict:
+    """The `dano info --json` object."""
+    return {
+        "mass": float(dano.mass),
+        "com": np.asarray(dano.com).tolist(),
+        "inertia": np.asarray(dano.inertia).tolist(),
+        "principal_moments": np.asarray(dano.principal_moments()).tolist(),
+        "n_points": dano.n_points,
+        "window": np.asarray(dano.window).tolist(),
+        "alpha": float(dano.alpha),
+        "mass_stderr": float(dano.mass_stderr),
+        "com_stderr": np.asarray(dano.com_stderr).tolist(),
+        "inertia_stderr": np.asarray(dano.inertia_stderr).tolist(),
+        "source": dano.source,
+    }
+
+
+def _info(args: argparse.Namespace) -> None:
+    from dano.io import load_dano
+
+    d = info_dict(load_dano(args.file))
+    if args.json:
+        print(json.dumps(d))
+        return
+    vec = lambda v: "  ".join(f"{x:+.6e}" for x in v)  # noqa: E731
+    print(f"file               {args.file}  (source: {d['source'] or 'unknown'})")
+    print(f"mass               {d['mass']:.6g} kg  (+/- {d['mass_stderr']:.2g}, alpha {d['alpha']:.6g})")
+    print(f"centre of mass     {vec(d['com'])} m  (+/- {max(d['com_stderr']):.2g})")
+    print("inertia about COM  " + "\n                   ".join(vec(row) for row in d["inertia"]) + "  kg m^2")
+    print(f"principal moments  {vec(d['principal_moments'])} kg m^2")
+    print(f"surface points     {d['n_points']}, density window [{d['window'][0]:.6g}, {d['window'][1]:.6g}]")
+
+
+def _demo(args: argparse.Namespace) -> None:
+    from dano.demo import run_demo
+
+    run_demo(args.out, resolution=args.resolution, seed=args.seed)
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dano", description="Dynamics-Augmented Neural Objects")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    b = sub.add_parser("build", help="build a DANO from a field, mesh, grid, checkpoint or reference collider")
+    b.add_argument("source", help="mesh file, grid .npz, neural checkpoint .npz, reference collider .npz, or a spec "
+                   "such as sphere:r=0.05, box:size=0.1,0.06,0.03, capsule:r=0.02,half_length=0.05")  # fmt: skip
+    b.add_argument("-o", "--output", required=True, help="output .dano.npz")
+    b.add_argument("--points", type=int, default=5000, help="candidate surface points (default 5000)")
+    b.add_argument("--mass", type=float, help="total mass in kg (fixes the mass scale alpha)")
+    b.add_argument("--alpha", type=float, help="mass scale alpha, kg per (density unit m^3) (default 1)")
+    b.add_argument("--scale", type=float, default=1.0, help="multiply lengths by this (m per source unit)")
+    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("--window", help="density window LOW,HIGH (default 0.1,0.9 x the field's peak)")
+    b.add_argument("--normals", choices=["autodiff", "fd"], default="autodiff")
+    b.add_argument("--resolution", type=int, default=96, help="grid nodes along a mesh's longest side")
+    b.add_argument("--repair", action="store_true", help="make a non-watertight mesh watertight with pymeshfix")
+    b.set_defaults(run=_build)
+
+    i = sub.add_parser("info", help="print a DANO's mass properties")
+    i.add_argument("file")
+    i.add_argument("--json", action="store_true", help="one JSON object (keys mass, com, inertia, n_points, ...)")
+    i.set_defaults(run=_info)
+
+    d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
+    d.add_argument("--out", default="dano-demo", help="output folder (default dano-demo)")
+    d.add_argument("--resolution", type=int, default=96)
+    d.add_argument("--seed", type=int, default=0)
+    d.set_defaults(run=_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    try:
+        args.run(args)
+    except DanoError as e:
+        print(f"dano {args.command}: {type(e).__name__}: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

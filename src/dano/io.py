@@ -1,0 +1,89 @@
+"""Files: atomic `.npz` writing, pickle-free reading, the `.dano.npz` format, reference colliders.
+
+`.dano.npz` (format "dano", version 1) holds one array per `DANO` attribute plus `format`,
+`version` and `source`. Files are written to a temporary name in the target folder and renamed,
+so a crash never leaves half a file; they are read with `allow_pickle=False`.
+"""
+
+import os
+import tempfile
+import zipfile
+from collections.abc import Iterable
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from dano.errors import DanoError, DanoFileError
+from dano.types import DANO
+
+FORMAT = "dano"
+VERSION = 1
+_ARRAYS = ("mass", "com", "inertia", "points", "densities", "normals", "alpha", "window",
+           "mass_stderr", "com_stderr", "inertia_stderr")  # fmt: skip
+
+
+def atomic_savez(path: str | Path, **arrays) -> None:
+    """`np.savez_compressed` to `path` via a temporary file and an atomic rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def load_npz(path: str | Path, required: Iterable[str] = ()) -> dict[str, np.ndarray]:
+    """Reads every array of an `.npz` without pickle.
+
+    Raises:
+        DanoFileError: the file is missing, not an npz, holds object arrays, or lacks a key.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DanoFileError(f"{path}: no such file")
+    try:
+        # Open the file ourselves: np.load leaks its handle when the zip is corrupt.
+        with open(path, "rb") as fh, np.load(fh, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
+        raise DanoFileError(f"{path}: not a readable .npz file ({e})") from None
+    missing = [k for k in required if k not in data]
+    if missing:
+        raise DanoFileError(f"{path}: missing arrays {missing}")
+    return data
+
+
+def save_dano(path: str | Path, dano: DANO) -> None:
+    """Writes `dano` to `path` (conventionally `*.dano.npz`) atomically."""
+    arrays = {name: np.asarray(getattr(dano, name)) for name in _ARRAYS}
+    atomic_savez(path, format=np.str_(FORMAT), version=np.int64(VERSION), source=np.str_(dano.source), **arrays)
+
+
+def load_dano(path: str | Path) -> DANO:
+    """Reads a `.dano.npz` written by `save_dano`.
+
+    Raises:
+        DanoFileError: corrupt file, another format or version, bad shapes or non-finite values.
+    """
+    data = load_npz(path, required=("format", "version"))
+    if str(data["format"]) != FORMAT:
+        raise DanoFileError(f"{path}: format is {str(data['format'])!r}, expected {FORMAT!r}")
+    if data["version"].shape != () or int(data["version"]) != VERSION:
+        raise DanoFileError(f"{path}: format version {data['version']} is not supported (this dano reads {VERSION})")
+    missing = [k for k in _ARRAYS if k not in data]
+    if missing:
+        raise DanoFileError(f"{path}: missing arrays {missing}")
+    for name in _ARRAYS:
+        if data[name].dtype.kind != "f" or not np.all(np.isfinite(data[name])):
+            raise DanoFileError(f"{path}: array {name!r} must be finite floats")
+    try:
+        return DANO(**{k: jnp.asarray(data[k]) for k in _ARRAYS}, source=str(data.get("source", "")))
+    except (ValueError, DanoError) as e:  # bad shapes, a non-positive mass
+        raise DanoFileError(f"{path}: {e}") from None

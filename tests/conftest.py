@@ -1,0 +1,36 @@
+"""Test configuration: float64, strict shapes and dtypes, shared fixtures."""
+
+import os
+from pathlib import Path
+
+import jax
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+SHARED = Path(os.environ.get("DANO_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared")).resolve()
+DOJO = SHARED / "data" / "dojo"
+
+
+@pytest.fixture(scope="session")
+def dojo() -> Path:
+    """The reference data folder, or a skip saying why it is missing."""
+    if not (DOJO / "colliders").is_dir():
+        pytest.skip(f"reference data not found at {DOJO} (set DANO_SHARED to the shared/ folder)")
+    return DOJO
+
+
+@pytest.fixture(scope="session")
+def bunny_mesh():
+    from dano.demo import bunny_mesh
+
+    return bunny_mesh()
+
+
+@pytest.fixture(scope="session")
+def bunny_field(bunny_mesh):
+    from dano.fields import mesh_field
+
+    return mesh_field(bunny_mesh, resolution=80, progress=False)

@@ -1,0 +1,84 @@
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dano.cli import main
+
+
+def test_build_then_info_json(tmp_path, capsys):
+    out = tmp_path / "box.dano.npz"
+    assert main(["build", "box:size=0.1,0.06,0.03", "-o", str(out), "--points", "800", "--mass", "0.2"]) == 0
+    capsys.readouterr()
+    assert main(["info", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert {"mass", "com", "inertia", "n_points"} <= set(info)
+    assert info["mass"] == pytest.approx(0.2) and info["n_points"] == 800
+    a, b, c = 0.1, 0.06, 0.03  # soft edges are 5 % of the smallest half-size: close to the solid box
+    solid = 0.2 / 12 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
+    np.testing.assert_allclose(np.diag(info["inertia"]), solid, rtol=0.02)
+    assert main(["info", str(out)]) == 0
+    assert "principal moments" in capsys.readouterr().out
+
+
+def test_scale_multiplies_lengths(tmp_path, capsys):
+    small, big = tmp_path / "s.dano.npz", tmp_path / "b.dano.npz"
+    main(["build", "sphere:r=1", "-o", str(small), "--points", "200", "--mass", "1"])
+    main(["build", "sphere:r=1", "-o", str(big), "--points", "200", "--mass", "1", "--scale", "0.1"])
+    capsys.readouterr()
+    main(["info", str(small), "--json"])
+    i_small = json.loads(capsys.readouterr().out)["inertia"][0][0]
+    main(["info", str(big), "--json"])
+    i_big = json.loads(capsys.readouterr().out)["inertia"][0][0]
+    assert i_big == pytest.approx(0.01 * i_small, rel=1e-3)  # same mass, lengths x0.1: inertia x0.01
+
+
+def test_errors_are_one_line_and_exit_2(tmp_path, capsys):
+    import trimesh
+
+    box = trimesh.creation.box()
+    trimesh.Trimesh(box.vertices, box.faces[:-2]).export(tmp_path / "open.stl")
+    assert main(["build", str(tmp_path / "open.stl"), "-o", str(tmp_path / "x.dano.npz")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "MeshNotWatertightError" in err and "--repair" in err and "\n" not in err
+    assert main(["build", "sphere:r=0.05", "-o", str(tmp_path / "x.dano.npz"), "--window", "5000,6000"]) == 2
+    assert "EmptyWindowError" in capsys.readouterr().err
+    assert main(["info", str(tmp_path / "nothing.dano.npz")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["build", "sphere:r=0.05", "-o", str(tmp_path / "x.dano.npz"), "--mass", "-1"]) == 2
+    assert "InvalidMassError" in capsys.readouterr().err
+    assert not (tmp_path / "x.dano.npz").exists()
+
+
+def test_repair_builds_a_watertight_dano(tmp_path, capsys):
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.05)
+    trimesh.Trimesh(sphere.vertices, sphere.faces[:-3]).export(tmp_path / "holey.ply")
+    out = tmp_path / "s.dano.npz"
+    assert (
+        main(
+            ["build", str(tmp_path / "holey.ply"), "-o", str(out), "--repair", "--points", "500", "--resolution", "40"]
+        )
+        == 0
+    )
+    capsys.readouterr()
+    main(["info", str(out), "--json"])
+    info = json.loads(capsys.readouterr().out)
+    assert info["mass"] == pytest.approx(1000 * sphere.volume, rel=0.03)
+
+
+def test_reference_collider_source(dojo, tmp_path, capsys):
+    out = tmp_path / "bunny.dano.npz"
+    assert main(["build", str(dojo / "colliders" / "bunny_collider.npz"), "-o", str(out)]) == 0
+    capsys.readouterr()
+    main(["info", str(out), "--json"])
+    info = json.loads(capsys.readouterr().out)
+    assert info["mass"] == pytest.approx(3.21985, rel=1e-5) and info["n_points"] == 5000
+
+
+def test_console_script_runs():
+    done = subprocess.run([sys.executable, "-m", "dano.cli", "--help"], capture_output=True, text=True, check=True)
+    assert "build" in done.stdout and "demo" in done.stdout
