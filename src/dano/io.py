@@ -23,6 +23,11 @@ _ARRAYS = ("mass", "com", "inertia", "points", "densities", "normals", "alpha", 
            "mass_stderr", "com_stderr", "inertia_stderr")  # fmt: skip
 
 
+def _shapes(n: int) -> dict[str, tuple[int, ...]]:
+    return {"mass": (), "com": (3,), "inertia": (3, 3), "points": (n, 3), "densities": (n,), "normals": (n, 3),
+            "alpha": (), "window": (2,), "mass_stderr": (), "com_stderr": (3,), "inertia_stderr": (3, 3)}  # fmt: skip
+
+
 def atomic_savez(path: str | Path, **arrays) -> None:
     """`np.savez_compressed` to `path` via a temporary file and an atomic rename."""
     path = Path(path)
@@ -83,6 +88,10 @@ def load_dano(path: str | Path) -> DANO:
     for name in _ARRAYS:
         if data[name].dtype.kind != "f" or not np.all(np.isfinite(data[name])):
             raise DanoFileError(f"{path}: array {name!r} must be finite floats")
+    n = data["points"].shape[0] if data["points"].ndim == 2 else -1
+    for name, shape in _shapes(n).items():
+        if data[name].shape != shape:
+            raise DanoFileError(f"{path}: array {name!r} has shape {data[name].shape}, expected {shape}")
     try:
         return DANO(**{k: jnp.asarray(data[k]) for k in _ARRAYS}, source=str(data.get("source", "")))
     except (ValueError, DanoError) as e:  # bad shapes, a non-positive mass

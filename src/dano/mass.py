@@ -55,7 +55,7 @@ def _properties(m0, m1, m2, centre, alpha):
 
 def mass_properties_from_points(
     field: AbstractField,
-    points: Float[Array, "r m 3"],
+    points: Float[Array | np.ndarray, "r m 3"],
     alpha: float | Array | None = 1.0,
     mass: float | Array | None = None,
 ) -> tuple[MassProperties, Array]:

@@ -15,6 +15,8 @@ moments in t (Steiner's formula). rho is a polynomial, so Gauss-Legendre on [-w,
 evaluates the t-integral exactly.
 """
 
+from collections.abc import Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -26,6 +28,8 @@ from dano.fields.base import AbstractField, Bounds, as_bounds
 from dano.math import safe_norm, smootherstep
 
 _PI = np.pi
+Scalar = float | Float[Array, ""]
+"""A Python number or a 0-d array (possibly traced, for gradients w.r.t. shape parameters)."""
 
 
 def _concrete(*values) -> bool:
@@ -87,7 +91,7 @@ class SphereField(_AnalyticField):
     peak: Float[Array, ""]
     bounds: Bounds = eqx.field(static=True)
 
-    def __init__(self, radius: float, width: float | None = None, peak: float = 1000.0, bounds=None):
+    def __init__(self, radius: Scalar, width: Scalar | None = None, peak: Scalar = 1000.0, bounds=None):
         self.radius = _positive("radius", radius)
         self.width = _positive("width", 0.05 * radius if width is None else width)
         self.peak = _positive("peak", peak)
@@ -112,7 +116,9 @@ class BoxField(_AnalyticField):
     peak: Float[Array, ""]
     bounds: Bounds = eqx.field(static=True)
 
-    def __init__(self, size: ArrayLike, width: float | None = None, peak: float = 1000.0, bounds=None):
+    def __init__(
+        self, size: Sequence[float] | ArrayLike, width: Scalar | None = None, peak: Scalar = 1000.0, bounds=None
+    ):
         size = jnp.asarray(size)
         if size.shape != (3,):
             raise FieldError(f"box size must have 3 entries (x, y, z edge lengths), got shape {size.shape}")
@@ -174,7 +180,7 @@ class CapsuleField(_AnalyticField):
     bounds: Bounds = eqx.field(static=True)
 
     def __init__(
-        self, radius: float, half_length: float, width: float | None = None, peak: float = 1000.0, bounds=None
+        self, radius: Scalar, half_length: Scalar, width: Scalar | None = None, peak: Scalar = 1000.0, bounds=None
     ):
         self.radius = _positive("radius", radius)
         self.half_length = _positive("half_length", half_length)

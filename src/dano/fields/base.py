@@ -97,7 +97,7 @@ class TransformedField(AbstractField):
         return self.field(((x - self.translation[None, :]) @ self.rotation) / self.scale)
 
 
-def as_field(obj: AbstractField | Callable[[Array], Array], bounds: ArrayLike | None = None):
+def as_field(obj: AbstractField | Callable[[Array], Array], bounds: ArrayLike | Bounds | None = None):
     """Returns `obj` if it is a field, else wraps a callable with the given box."""
     if isinstance(obj, AbstractField):
         return obj
