@@ -53,7 +53,7 @@ def load_reference(path: str | Path, inertia: Literal["tensor", "second_moment"]
     zero3 = jnp.zeros(3)
     return DANO(
         mass=jnp.asarray(float(data["mass"])),
-        com=jnp.asarray(data["center_of_mass"], dtype=float),
+        com=jnp.asarray(data["center_of_mass"], dtype=jnp.result_type(float)),
         inertia=jnp.asarray(tensor),
         points=jnp.asarray(points),
         densities=jnp.asarray(densities),

@@ -74,7 +74,7 @@ class DANO(eqx.Module):
     @property
     def body_points(self) -> Float[Array, "n 3"]:
         """Points in the body frame (origin at the centre of mass), m."""
-        return self.points - self.com
+        return self.points - self.com[None, :]
 
     def principal_moments(self) -> Float[Array, " 3"]:
         """Eigenvalues of the inertia tensor, ascending, kg m^2."""

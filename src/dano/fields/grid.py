@@ -77,7 +77,7 @@ def load_grid(path: str | Path) -> GridField:
     if not np.all(np.isfinite(density)) or np.any(density < 0):
         raise DanoFileError(f"{path}: 'density' must be finite and non-negative")
     try:
-        return GridField(jnp.asarray(density, dtype=float), data["bounds"])
+        return GridField(jnp.asarray(density, dtype=jnp.result_type(float)), data["bounds"])
     except FieldError as e:
         raise DanoFileError(f"{path}: {e}") from None
 

@@ -1,0 +1,17 @@
+"""The probabilistic contact model (paper eqs. 5-16): overlap psi, centroid chi, normal, wrench."""
+
+from dano.contact.overlap import (
+    Box,
+    Capsule,
+    HalfSpace,
+    Overlap,
+    Sphere,
+    expected_overlap,
+    signed_distance,
+)
+from dano.contact.wrench import ContactParams, Wrench, contact_wrench, coulomb_direction, point_wrench
+
+__all__ = [
+    "Box", "Capsule", "ContactParams", "HalfSpace", "Overlap", "Sphere", "Wrench", "contact_wrench",
+    "coulomb_direction", "expected_overlap", "point_wrench", "signed_distance",
+]  # fmt: skip

@@ -1,0 +1,123 @@
+"""The contact wrench (paper eqs. 11-16) from an overlap and the bodies' velocities.
+
+With u the velocity of the contact point of the DANO relative to the other body, Omega their
+relative angular velocity (world), and n the normal from the other body towards the DANO:
+
+    F_imp = psi (k n - c_d u_n)                            spring k (m/s^2), damper c_d (1/s)
+    F_t   = -d_s |F_imp| u_t + mu_s |F_imp| C(u_t)          sliding drag d_s (s/m), friction mu_s
+    tau_n = -d_t |F_imp| Omega_n + mu_t |F_imp| C(Omega_n)  torsional drag/friction
+    tau_t = -d_r |F_imp| Omega_t + mu_r |F_imp| C(Omega_t)  rolling drag/friction
+    F = F_imp + F_t,  tau = tau_n + tau_t + (chi - x) x F   (about the centre of mass x, world)
+
+C(a) = -(2/pi) atan(s |a|) a / (eps + |a|) is the smoothed Coulomb direction of the reference:
+it tends to -a/|a| for |a| >> 1/s and is smooth at a = 0, so gradients exist at zero slip.
+Units follow the reference: psi is the overlapping mass in kg, so k is a force per kg.
+"""
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from dano.math import safe_norm
+
+Scalar = float | Float[Array, ""]
+
+
+def _param(default: float):
+    """A scalar parameter leaf: a Python float or an array (traced, for gradients), stored as an array."""
+    return eqx.field(default=default, converter=lambda v: jnp.asarray(v, dtype=jnp.result_type(float)))
+
+
+class ContactParams(eqx.Module):
+    """Per-pair contact parameters (paper Table I); every one is a differentiable leaf.
+
+    Defaults are the scene file's documented defaults; Table I gives their useful ranges.
+    """
+
+    impact_spring: Scalar = _param(3e4)
+    """k, N per kg of overlap (m/s^2); Table I 1e4-1e5."""
+    impact_damper: Scalar = _param(3e5)
+    """c_d, 1/s; Table I 1e5-1e6."""
+    sliding_friction: Scalar = _param(0.5)
+    """mu_s, dimensionless; Table I 0-1."""
+    sliding_drag: Scalar = _param(0.0)
+    """d_s, s/m; Table I 0-0.1."""
+    rolling_friction: Scalar = _param(0.01)
+    """mu_r, m (torque per newton); Table I 0-0.1."""
+    rolling_drag: Scalar = _param(0.0)
+    """d_r, m s; Table I 0-0.1."""
+    torsional_friction: Scalar = _param(0.01)
+    """mu_t, m; Table I 0-0.1."""
+    torsional_drag: Scalar = _param(0.0)
+    """d_t, m s; Table I 0-0.1."""
+    coulomb_smoothing: Scalar = _param(30.0)
+    """s of C(a), s/m: slip speeds well above 1/s feel full dry friction."""
+    coulomb_regularizer: Scalar = _param(1e-3)
+    """eps of C(a), m/s."""
+    indicator_width: Scalar = _param(5e-4)
+    """delta of the smooth inside test, m; 0 is the paper's hard indicator."""
+
+
+class Wrench(eqx.Module):
+    """Force (3,) N and torque about the centre of mass (3,) N m, world frame."""
+
+    force: Float[Array, " 3"]
+    torque: Float[Array, " 3"]
+
+
+def coulomb_direction(a: Float[Array, "... 3"], smoothing, regularizer) -> Float[Array, "... 3"]:
+    """C(a) = -(2/pi) atan(s|a|) a / (eps + |a|), along the last axis."""
+    norm = safe_norm(a)[..., None]
+    return -(2 / jnp.pi) * jnp.arctan(smoothing * norm) * a / (regularizer + norm)
+
+
+def _split(a: Float[Array, "... 3"], n: Float[Array, "... 3"]):
+    normal = jnp.sum(a * n, axis=-1, keepdims=True) * n
+    return normal, a - normal
+
+
+def point_wrench(
+    p: ContactParams,
+    psi: Float[Array, "..."],
+    normal: Float[Array, "... 3"],
+    u: Float[Array, "... 3"],
+    omega: Float[Array, "... 3"],
+) -> tuple[Float[Array, "... 3"], Float[Array, "... 3"]]:
+    """Force and pure torque (eqs. 11-14) of overlaps `psi` with contact-point velocities `u` and
+    relative angular velocities `omega` (all world); broadcasts over leading axes."""
+    u_n, u_t = _split(u, normal)
+    w_n, w_t = _split(omega, normal)
+    f_imp = psi[..., None] * (p.impact_spring * normal - p.impact_damper * u_n)
+    mag = safe_norm(f_imp)[..., None]
+    c = lambda a: coulomb_direction(a, p.coulomb_smoothing, p.coulomb_regularizer)  # noqa: E731
+    f_t = mag * (-p.sliding_drag * u_t + p.sliding_friction * c(u_t))
+    tau_n = mag * (-p.torsional_drag * w_n + p.torsional_friction * c(w_n))
+    tau_t = mag * (-p.rolling_drag * w_t + p.rolling_friction * c(w_t))
+    return f_imp + f_t, tau_n + tau_t
+
+
+def contact_wrench(
+    p: ContactParams,
+    psi: Float[Array, ""],
+    chi: Float[Array, " 3"],
+    normal: Float[Array, " 3"],
+    com: Float[Array, " 3"],
+    velocity: Float[Array, " 3"],
+    angular_velocity: Float[Array, " 3"],
+    other_velocity_at_chi: Float[Array, " 3"],
+    other_angular_velocity: Float[Array, " 3"],
+) -> Wrench:
+    """The paper's wrench: everything applied at the overlap centroid chi (eqs. 11-16).
+
+    Args:
+        p: contact parameters.
+        psi, chi, normal: the overlap (see `expected_overlap`).
+        com, velocity, angular_velocity: the DANO's centre of mass (m), its velocity (m/s) and
+            angular velocity (rad/s), world frame.
+        other_velocity_at_chi, other_angular_velocity: the other body's velocity at chi and its
+            angular velocity (zeros for the static ground).
+    """
+    r = chi - com
+    u = velocity + jnp.cross(angular_velocity, r) - other_velocity_at_chi
+    force, torque = point_wrench(p, psi, normal, u, angular_velocity - other_angular_velocity)
+    return Wrench(force, torque + jnp.cross(r, force))
