@@ -65,30 +65,30 @@ class Wrench(eqx.Module):
     torque: Float[Array, " 3"]
 
 
-def coulomb_direction(a: Float[Array, "... 3"], smoothing, regularizer) -> Float[Array, "... 3"]:
-    """C(a) = -(2/pi) atan(s|a|) a / (eps + |a|), along the last axis."""
-    norm = safe_norm(a)[..., None]
+def coulomb_direction(a: Float[Array, "3 ..."], smoothing, regularizer) -> Float[Array, "3 ..."]:
+    """C(a) = -(2/pi) atan(s|a|) a / (eps + |a|); vectors along axis 0."""
+    norm = safe_norm(a, axis=0)[None]
     return -(2 / jnp.pi) * jnp.arctan(smoothing * norm) * a / (regularizer + norm)
 
 
-def _split(a: Float[Array, "... 3"], n: Float[Array, "... 3"]):
-    normal = jnp.sum(a * n, axis=-1, keepdims=True) * n
+def _split(a: Float[Array, "3 ..."], n: Float[Array, "3 ..."]):
+    normal = jnp.sum(a * n, axis=0, keepdims=True) * n
     return normal, a - normal
 
 
 def point_wrench(
     p: ContactParams,
     psi: Float[Array, "..."],
-    normal: Float[Array, "... 3"],
-    u: Float[Array, "... 3"],
-    omega: Float[Array, "... 3"],
-) -> tuple[Float[Array, "... 3"], Float[Array, "... 3"]]:
+    normal: Float[Array, "3 ..."],
+    u: Float[Array, "3 ..."],
+    omega: Float[Array, "3 ..."],
+) -> tuple[Float[Array, "3 ..."], Float[Array, "3 ..."]]:
     """Force and pure torque (eqs. 11-14) of overlaps `psi` with contact-point velocities `u` and
-    relative angular velocities `omega` (all world); broadcasts over leading axes."""
+    relative angular velocities `omega`, world frame; vectors along axis 0 (shape (3,) or (3, n))."""
     u_n, u_t = _split(u, normal)
     w_n, w_t = _split(omega, normal)
-    f_imp = psi[..., None] * (p.impact_spring * normal - p.impact_damper * u_n)
-    mag = safe_norm(f_imp)[..., None]
+    f_imp = psi[None] * (p.impact_spring * normal - p.impact_damper * u_n)
+    mag = safe_norm(f_imp, axis=0)[None]
     c = lambda a: coulomb_direction(a, p.coulomb_smoothing, p.coulomb_regularizer)  # noqa: E731
     f_t = mag * (-p.sliding_drag * u_t + p.sliding_friction * c(u_t))
     tau_n = mag * (-p.torsional_drag * w_n + p.torsional_friction * c(w_n))

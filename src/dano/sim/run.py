@@ -1,0 +1,99 @@
+"""Host-side driver: compile a scene, roll it out, check it, and write the trajectory.
+
+Penalty contact is stiff: when the time step is too large for the spring and damper, the state
+grows without bound. `check_trajectory` turns that into a `SimulationError` that names the first
+bad frame and the likely cause, instead of returning NaNs.
+"""
+
+import csv
+import dataclasses
+import os
+import tempfile
+from pathlib import Path
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+from dano.errors import DanoError
+from dano.sim.scene import Scene, compile_scene
+from dano.sim.step import Trajectory, rollout
+
+
+class SimulationError(DanoError):
+    """The simulation blew up (non-finite state or runaway speed)."""
+
+
+MAX_SPEED = 100.0
+"""m/s (or rad/s * 0.1 m): beyond this a tabletop scene has certainly blown up."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Simulation:
+    """A compiled scene ready to roll out: the MuJoCo model, the MJX model and data, the world."""
+
+    scene: Scene
+    model: object
+    mjx_model: mjx.Model
+    data: mjx.Data
+    world: object
+    params: object
+
+    @classmethod
+    def from_scene(cls, scene: Scene) -> "Simulation":
+        model, world, params, qpos, qvel = compile_scene(scene)
+        m = mjx.put_model(model)
+        d = mjx.make_data(m).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+        return cls(scene, model, m, d, world, params)
+
+    def run(self, n_frames: int | None = None, params=None) -> Trajectory:
+        """Rolls out (jitted) and checks the result; raises `SimulationError` on a blow-up."""
+        n = self.scene.n_steps if n_frames is None else n_frames
+        fn = eqx.filter_jit(rollout)
+        traj = fn(self.world, self.params if params is None else params, self.mjx_model, self.data, n)
+        check_trajectory(traj, self.scene)
+        return traj
+
+
+def check_trajectory(traj: Trajectory, scene: Scene) -> None:
+    """Raises `SimulationError` at the first frame with a non-finite state or a runaway speed."""
+    qpos, qvel = np.asarray(traj.qpos), np.asarray(traj.qvel)
+    bad = ~np.all(np.isfinite(qpos), axis=1) | ~np.all(np.isfinite(qvel), axis=1)
+    bad |= np.max(np.abs(np.nan_to_num(qvel, nan=np.inf)), axis=1) > MAX_SPEED
+    if bad.any():
+        frame = int(np.argmax(bad))
+        raise SimulationError(
+            f"the simulation blew up at frame {frame} (t = {frame * scene.timestep:.4g} s): the time step "
+            f"{scene.timestep / scene.substeps:.3g} s is likely too large for the contact spring/damper; "
+            "raise substeps or lower impact_spring / impact_damper"
+        )
+
+
+def body_poses(traj: Trajectory, sim: Simulation) -> dict[str, np.ndarray]:
+    """Per DANO and free primitive: (T+1, 7) rows x, y, z, qw, qx, qy, qz (centre of mass, world)."""
+    qpos = np.asarray(traj.qpos)
+    w = sim.world
+    out = {name: qpos[:, a : a + 7] for name, a in zip(w.names, w.dano_qpos, strict=True)}
+    out |= {n: qpos[:, a : a + 7] for n, a in zip(w.prim_names, w.prim_qpos, strict=True) if a >= 0}
+    return out
+
+
+def write_csv(path: str | Path, traj: Trajectory, sim: Simulation) -> None:
+    """Writes `t,body,x,y,z,qw,qx,qy,qz`, one row per frame per body, atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    poses = body_poses(traj, sim)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            out = csv.writer(f)
+            out.writerow(["t", "body", "x", "y", "z", "qw", "qx", "qy", "qz"])
+            n = next(iter(poses.values())).shape[0] if poses else 0
+            for t in range(n):
+                for name, rows in poses.items():
+                    out.writerow([f"{t * sim.scene.timestep:.6f}", name, *(f"{v:.9g}" for v in rows[t])])
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

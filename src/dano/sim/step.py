@@ -1,0 +1,236 @@
+"""The simulation step: DANO contact wrenches -> `xfrc_applied` -> `mjx.step`, and rollouts.
+
+One frame is `world.substeps` MuJoCo steps; before each, every DANO pair's wrench is computed at
+the current configuration and velocity and written to `xfrc_applied` (force and torque about each
+body's centre of mass, world frame). A rollout is a `lax.scan` over frames with the frame step
+under `jax.checkpoint`, so reverse-mode gradients of long rollouts keep only one state per frame.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+from mujoco import mjx
+
+from dano.contact import Box, Capsule, HalfSpace, Sphere, expected_overlap
+from dano.contact.overlap import outward_normal
+from dano.contact.wrench import ContactParams, point_wrench
+from dano.math import quat_to_mat
+from dano.sim.scene import Params, World, pairs
+
+
+class Frame(eqx.Module):
+    """Pose and velocity of a rigid body, world frame: centre of mass x (3,), rotation R (3, 3),
+    velocity v (3,), angular velocity w (3,)."""
+
+    x: Float[Array, " 3"]
+    R: Float[Array, "3 3"]
+    v: Float[Array, " 3"]
+    w: Float[Array, " 3"]
+
+
+def free_frame(qpos: Array, qvel: Array, a: int, v: int) -> Frame:
+    """Frame of a free-joint body from MuJoCo state (its angular qvel is in the body frame)."""
+    R = quat_to_mat(qpos[a + 3 : a + 7])
+    return Frame(qpos[a : a + 3], R, qvel[v : v + 3], R @ qvel[v + 3 : v + 6])
+
+
+def _static_frame(pos, quat) -> Frame:
+    z = jnp.zeros(3)
+    return Frame(jnp.asarray(pos, dtype=float), quat_to_mat(jnp.asarray(quat, dtype=float)), z, z)
+
+
+def primitive_frame(world: World, k: int, d: mjx.Data, mocap_vel: Array | None = None) -> Frame:
+    mode = world.prim_mode[k]
+    if mode == "free":
+        return free_frame(d.qpos, d.qvel, world.prim_qpos[k], world.prim_qvel[k])
+    if mode == "mocap":
+        i = world.prim_mocap[k]
+        z = jnp.zeros(3)
+        v = z if mocap_vel is None else mocap_vel[i]
+        return Frame(d.mocap_pos[i], quat_to_mat(d.mocap_quat[i]), v, z)
+    return _static_frame(world.prim_pos[k], world.prim_quat[k])
+
+
+def primitive_shape(world: World, k: int, f: Frame):
+    size = world.prim_size[k]
+    kind = world.prim_kind[k]
+    if kind == "sphere":
+        return Sphere(f.x, jnp.asarray(size[0]))
+    if kind == "capsule":
+        axis = f.R[:, 2] * size[1]
+        return Capsule(f.x - axis, f.x + axis, jnp.asarray(size[0]))
+    return Box(f.x, f.R, jnp.asarray(size, dtype=float))
+
+
+class Body(eqx.Module):
+    """A DANO's contact data at the current scales: body-frame points (3, n), weights (n,) kg,
+    mass kg, inertia about the centre of mass (3, 3) body frame."""
+
+    points: Float[Array, "3 n"]
+    weights: Float[Array, " n"]
+    mass: Float[Array, ""]
+    inertia: Float[Array, "3 3"]
+
+
+def implicit_damper(p: ContactParams, psi, normal, chi, a: Frame, body: Body, other_inv_mass: float, dt: float):
+    """Contact parameters with the damper made linearly implicit: c_d / (1 + dt c_d psi / m_eff).
+
+    An explicit damper c_d psi is unstable once dt c_d psi / m_eff > 2 (deep or wide contacts);
+    the backward-Euler factor makes the damping force at most the one that stops the normal
+    relative motion in one step, smoothly, and changes nothing when dt c_d psi << m_eff.
+    m_eff is the effective mass of the contact along the normal at chi (both bodies).
+    """
+    rn = jnp.cross(chi - a.x, normal)
+    inv_inertia = a.R @ jnp.linalg.inv(body.inertia) @ a.R.T
+    inv_m_eff = 1.0 / body.mass + rn @ inv_inertia @ rn + other_inv_mass
+    factor = 1.0 + dt * p.impact_damper * psi * inv_m_eff
+    return eqx.tree_at(lambda q: q.impact_damper, p, p.impact_damper / factor)
+
+
+def pair_wrench(p: ContactParams, shape, body: Body, a: Frame, b: Frame, mode: str, other_inv_mass: float, dt: float):
+    """Wrench on DANO `a` from primitive `shape` carried by frame `b` (eqs. 7-8, 11-16).
+
+    Returns:
+        force (3,) and torque about a's centre of mass (3,), world frame.
+    """
+    P = a.R @ body.points + a.x[:, None]
+    o = expected_overlap(shape, P, body.weights, p.indicator_width)
+    p = implicit_damper(p, o.psi, o.normal, o.chi, a, body, other_inv_mass, dt)
+    if mode == "centroid":
+        at, psi, normal = o.chi[:, None], o.psi[None], o.normal[:, None]
+    elif isinstance(shape, HalfSpace):
+        at, psi, normal = P, o.inside, o.normal[:, None]
+    else:
+        at, psi, normal = P, o.inside, jax.vmap(outward_normal, (None, 1), 1)(shape, P)
+    r = at - a.x[:, None]
+    u_a = a.v[:, None] + jnp.cross(a.w[:, None], r, axis=0)
+    u_b = b.v[:, None] + jnp.cross(b.w[:, None], at - b.x[:, None], axis=0)
+    f, tau = point_wrench(p, psi, normal, u_a - u_b, (a.w - b.w)[:, None])
+    force = jnp.sum(f, axis=1)
+    torque = jnp.sum(tau, axis=1) + jnp.sum(jnp.cross(r, f, axis=0), axis=1)
+    return force, torque
+
+
+def contact_xfrc(
+    world: World, params: Params, d: mjx.Data, mocap_vel: Float[Array, "k 3"] | None = None
+) -> Float[Array, "nbody 6"]:
+    """Sum of all DANO contact wrenches, as MuJoCo's `xfrc_applied` (nbody, 6).
+
+    Args:
+        mocap_vel: velocities of the mocap bodies (driven primitives), world, m/s; zero if None.
+    """
+    xfrc = jnp.zeros_like(d.xfrc_applied)
+    frames = [free_frame(d.qpos, d.qvel, a, v) for a, v in zip(world.dano_qpos, world.dano_qvel, strict=True)]
+    bodies = [
+        Body(
+            s.points,
+            s.shares * s.mass * params.mass_scale[i],
+            s.mass * params.mass_scale[i],
+            s.inertia * params.mass_scale[i] * params.inertia_scale[i],
+        )  # fmt: skip
+        for i, s in enumerate(world.danos)
+    ]
+    for p, (i, kind, k) in zip(params.contact, pairs(world), strict=True):
+        a = frames[i]
+        if kind == "ground":
+            b = _static_frame((0.0, 0.0, world.ground_height), (1.0, 0.0, 0.0, 0.0))
+            shape, other, inv_mass = HalfSpace(jnp.asarray([0.0, 0.0, 1.0]), b.x), None, 0.0
+        elif kind == "primitive":
+            b = primitive_frame(world, k, d, mocap_vel)
+            shape = primitive_shape(world, k, b)
+            other = world.prim_body[k] if world.prim_mode[k] == "free" else None
+            inv_mass = 1.0 / world.prim_mass[k]
+        else:
+            raise NotImplementedError("DANO-DANO contact")  # pragma: no cover
+        force, torque = pair_wrench(p, shape, bodies[i], a, b, world.force_mode, inv_mass, world.dt)
+        xfrc = xfrc.at[world.dano_body[i]].add(jnp.concatenate([force, torque]))
+        if other is not None:
+            reaction = -(torque + jnp.cross(a.x - b.x, force))
+            xfrc = xfrc.at[other].add(jnp.concatenate([-force, reaction]))
+    return xfrc
+
+
+def scaled_model(world: World, params: Params, m: mjx.Model) -> mjx.Model:
+    """The model with each DANO's mass and inertia multiplied by its mass and inertia scales."""
+    body = jnp.asarray(world.dano_body, dtype=jnp.int32)
+    mass_factor = jnp.ones_like(m.body_mass).at[body].set(params.mass_scale)
+    inertia_factor = jnp.ones_like(m.body_mass).at[body].set(params.mass_scale * params.inertia_scale)
+    return m.replace(body_mass=m.body_mass * mass_factor, body_inertia=m.body_inertia * inertia_factor[:, None])
+
+
+def mjx_step(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """`mjx.step` under JAX's standard promotion rules, which MJX is written for (our own code and
+    tests run with strict dtype and rank promotion)."""
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        return mjx.step(m, d)
+
+
+def step(
+    world: World,
+    params: Params,
+    m: mjx.Model,
+    d: mjx.Data,
+    mocap_target: Float[Array, "k 3"] | None = None,
+    external: Float[Array, "nbody 6"] | None = None,
+) -> mjx.Data:
+    """One frame: `world.substeps` MuJoCo steps, each with fresh DANO contact wrenches.
+
+    Args:
+        m: the model, already `scaled_model(world, params, m)`.
+        mocap_target: where the mocap bodies are at the end of the frame; they move in a straight
+            line at constant velocity (which the contact damper and friction see).
+        external: known external wrenches (force, torque about the centre of mass; world), added to
+            the contact wrenches in `xfrc_applied`.
+    """
+    start = d.mocap_pos
+    vel = None if mocap_target is None else (mocap_target - start) / (world.dt * world.substeps)
+
+    def sub(d, i):
+        if mocap_target is not None:
+            d = d.replace(mocap_pos=start + (i + 1) / world.substeps * (mocap_target - start))
+        xfrc = contact_xfrc(world, params, d, vel)
+        d = d.replace(xfrc_applied=xfrc if external is None else xfrc + external)
+        return mjx_step(m, d), None
+
+    d, _ = jax.lax.scan(sub, d, jnp.arange(world.substeps))
+    return d
+
+
+class Trajectory(eqx.Module):
+    """qpos (T+1, nq) and qvel (T+1, nv) at every frame, the initial state first."""
+
+    qpos: Float[Array, "t nq"]
+    qvel: Float[Array, "t nv"]
+
+
+def rollout(
+    world: World,
+    params: Params,
+    m: mjx.Model,
+    d: mjx.Data,
+    n_frames: int,
+    ctrl: Float[Array, "t nu"] | None = None,
+    mocap_pos: Float[Array, "t k 3"] | None = None,
+    external: Float[Array, "t nbody 6"] | None = None,
+) -> Trajectory:
+    """Simulates `n_frames` frames from `d` (a `lax.scan`; jit-, grad- and vmap-able).
+
+    Args:
+        ctrl: optional actuator controls per frame.
+        mocap_pos: optional mocap body positions at the end of each frame (driven end effectors);
+            they move at constant velocity within a frame.
+        external: optional known external wrenches per frame (see `step`).
+    """
+    m = scaled_model(world, params, m)
+
+    @jax.checkpoint
+    def frame(d, inputs):
+        c, mp, ext = inputs
+        if c is not None:
+            d = d.replace(ctrl=c)
+        d = step(world, params, m, d, mp, ext)
+        return d, (d.qpos, d.qvel)
+
+    _, (qpos, qvel) = jax.lax.scan(frame, d, (ctrl, mocap_pos, external), length=n_frames)
+    return Trajectory(jnp.concatenate([d.qpos[None], qpos]), jnp.concatenate([d.qvel[None], qvel]))

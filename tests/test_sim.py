@@ -1,0 +1,165 @@
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dano
+from dano.contact import ContactParams
+from dano.fields import BoxField
+from dano.math import quat_to_mat
+from dano.sim import DanoBody, Params, Primitive, Scene
+from dano.sim.run import Simulation, SimulationError
+from dano.sim.step import rollout
+from helpers import central_difference
+
+G = 9.81
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return dano.build_dano(BoxField([0.1, 0.1, 0.1], width=0.002), n_points=2000, mass=1.0, log2_samples=13)
+
+
+def _rest_height(d) -> float:
+    """Centre-of-mass height at which the lowest sample point touches z = 0."""
+    return -float(jnp.min(d.body_points[:, 2]))
+
+
+def test_free_fall_and_torque_free_rotation(cube):
+    scene = Scene(
+        ground_height=None, bodies=(DanoBody("c", cube, pos=(0, 0, 1), vel=(0.3, 0, 1), angvel=(0.4, -1, 2)),)
+    )
+    traj = Simulation.from_scene(scene).run(150)
+    t = 150 * scene.timestep
+    h = scene.timestep / scene.substeps
+    # Semi-implicit Euler: z_n = z0 + v0 t - g t (t + h) / 2, an O(h) offset from the closed form.
+    z_closed = 1 + t - G * t * t / 2
+    assert float(traj.qpos[-1, 2]) == pytest.approx(z_closed - G * t * h / 2, abs=1e-9)
+    assert abs(float(traj.qpos[-1, 2]) - z_closed) <= G * t * h / 2 + 1e-9
+    assert float(traj.qpos[-1, 0]) == pytest.approx(0.3 * t, rel=1e-12)
+
+    # Without torque the world angular momentum R J R^T w is conserved (to the integrator's error).
+    def momentum(q, v):
+        R = quat_to_mat(q[3:7])
+        return R @ cube.inertia @ v[3:6]  # MuJoCo's free-joint angular velocity is in the body frame
+
+    L0, L1 = momentum(traj.qpos[0], traj.qvel[0]), momentum(traj.qpos[-1], traj.qvel[-1])
+    np.testing.assert_allclose(L1, L0, rtol=1e-3)
+    np.testing.assert_allclose(quat_to_mat(traj.qpos[0, 3:7]) @ traj.qvel[0, 3:6], [0.4, -1, 2], rtol=1e-12)
+
+
+def _slide(cube, smoothing: float, mode: str = "points"):
+    contact = ContactParams(sliding_friction=0.5, coulomb_smoothing=smoothing)
+    body = DanoBody("c", cube, pos=(0, 0, _rest_height(cube)), vel=(1.0, 0, 0))
+    return Simulation.from_scene(Scene(bodies=(body,), contact=contact, force_mode=mode)).run(500)
+
+
+def test_box_slides_v2_over_2_mu_g_and_stops(cube):
+    # With a sharp Coulomb law (s = 1000 s/m) friction is mu N down to ~3 mm/s: within 5 % of v^2/(2 mu g).
+    traj = _slide(cube, smoothing=1000.0)
+    distance = float(traj.qpos[-1, 0])
+    assert distance == pytest.approx(1 / (2 * 0.5 * G), rel=0.05)
+    assert float(jnp.linalg.norm(traj.qvel[-1, :3])) < 1e-3
+    assert abs(float(traj.qpos[-1, 1])) < 1e-3  # no sideways drift
+
+
+def test_slide_matches_the_smoothed_coulomb_law(cube):
+    # With the default s = 30 s/m dry friction fades below ~0.1 m/s, and below eps it is quadratic in
+    # the speed, so the box creeps on (the paper's creep). The exact distance of that law down to
+    # the final simulated speed v_end is int_{v_end}^{1} v dv / (mu g c(v)),
+    # c(v) = (2/pi) atan(s v) v / (eps + v). Tolerance 2 %: time step, rocking on the shell.
+    traj = _slide(cube, smoothing=30.0)
+    v_end = float(jnp.linalg.norm(traj.qvel[-1, :3]))
+    v = np.geomspace(v_end, 1.0, 20001)
+    c = (2 / np.pi) * np.arctan(30 * v) * v / (1e-3 + v)
+    expected = np.trapezoid(v / (0.5 * G * c), v)
+    assert float(traj.qpos[-1, 0]) == pytest.approx(expected, rel=0.02)
+
+
+@pytest.mark.slow
+def test_bunny_dropped_comes_to_rest(bunny_field):
+    bunny = dano.build_dano(bunny_field, n_points=5000, mass=0.7)
+    z0 = 0.1 + _rest_height(bunny)
+    sim = Simulation.from_scene(Scene(bodies=(DanoBody("b", bunny, pos=(0, 0, z0), angvel=(0.5, 0, 3.0)),)))
+    traj = sim.run(1000)
+    speed = np.linalg.norm(np.asarray(traj.qvel[:, :3]), axis=1)
+    assert np.all(speed[500:] < 1e-3)  # at rest within 1 s (acceptance: 2 s)
+    lows = [float(jnp.min((quat_to_mat(q[3:7]) @ bunny.body_points.T)[2]) + q[2]) for q in traj.qpos[::20]]
+    assert -min(lows) < 2e-3  # penetration below 2 mm
+
+
+def test_sphere_pushes_the_dano_the_right_way(cube):
+    # A driven (mocap) sphere moving along +x into a resting cube pushes it along +x.
+    z = _rest_height(cube)
+    sphere = Primitive("pusher", "sphere", (0.03,), pos=(-0.09, 0, z), mode="mocap")
+    sim = Simulation.from_scene(Scene(bodies=(DanoBody("c", cube, pos=(0, 0, z)),), primitives=(sphere,)))
+    n = 200
+    path = jnp.stack([jnp.linspace(-0.09, 0.0, n), jnp.zeros(n), jnp.full(n, z)], axis=1)[:, None, :]
+    traj = eqx.filter_jit(rollout)(sim.world, sim.params, sim.mjx_model, sim.data, n, None, path)
+    assert float(traj.qpos[-1, 0]) > 0.02
+    assert abs(float(traj.qpos[-1, 1])) < 0.2 * float(traj.qpos[-1, 0])
+
+
+def test_free_sphere_collision_conserves_momentum(cube):
+    sphere = Primitive("ball", "sphere", (0.03,), pos=(-0.2, 0.01, 0.005), mode="free", mass=0.5, vel=(2.0, 0, 0))
+    scene = Scene(ground_height=None, gravity=(0, 0, 0), bodies=(DanoBody("c", cube),), primitives=(sphere,))
+    sim = Simulation.from_scene(scene)
+    traj = sim.run(150)
+    mass = np.array([1.0, 0.5])
+    p0 = mass @ np.stack([traj.qvel[0, 0:3], traj.qvel[0, 6:9]])
+    p1 = mass @ np.stack([traj.qvel[-1, 0:3], traj.qvel[-1, 6:9]])
+    assert float(traj.qvel[-1, 0]) > 0.3  # the cube was hit
+    np.testing.assert_allclose(p1, p0, atol=1e-6 * np.linalg.norm(p0))
+
+
+def test_blow_up_is_reported_with_the_frame(cube):
+    stiff = ContactParams(impact_spring=1e7, impact_damper=1e8)
+    body = DanoBody("c", cube, pos=(0, 0, 0.05), vel=(0, 0, -2))
+    sim = Simulation.from_scene(Scene(bodies=(body,), contact=stiff, substeps=1))
+    with pytest.raises(SimulationError, match="frame"):
+        sim.run(100)
+
+
+def test_vmap_of_rollouts_equals_a_loop(cube):
+    sim = Simulation.from_scene(Scene(bodies=(DanoBody("c", cube, pos=(0, 0, _rest_height(cube))),)))
+
+    def final_x(vx):
+        d = sim.data.replace(qvel=sim.data.qvel.at[0].set(vx))
+        return rollout(sim.world, sim.params, sim.mjx_model, d, 50).qpos[-1, :3]
+
+    speeds = jnp.asarray([0.2, 0.5, 0.9])
+    batched = jax.jit(jax.vmap(final_x))(speeds)
+    looped = jnp.stack([jax.jit(final_x)(v) for v in speeds])
+    np.testing.assert_allclose(batched, looped, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_rollout_gradients_match_finite_differences(cube):
+    """d(final position)/d(friction, mass scale, initial velocity) through 500 steps, float64.
+
+    A known push (3 N along x, paper footnote 1) makes the mass scale matter."""
+    z = _rest_height(cube)
+    sim = Simulation.from_scene(Scene(substeps=1, timestep=0.0005, bodies=(DanoBody("c", cube, pos=(0, 0, z)),)))
+
+    def loss(mu, alpha, vx):
+        contact = (ContactParams(sliding_friction=mu, indicator_width=2e-3),)
+        params = Params(contact=contact, mass_scale=jnp.stack([alpha]), inertia_scale=sim.params.inertia_scale)
+        d = sim.data.replace(qvel=sim.data.qvel.at[0].set(vx))
+        push = jnp.zeros((500, sim.model.nbody, 6)).at[:, 1, 0].set(3.0)
+        q = rollout(sim.world, params, sim.mjx_model, d, 500, external=push).qpos[-1]
+        return q[0] + 0.3 * q[1] + 0.1 * q[2]
+
+    x0 = (0.4, 1.2, 0.8)
+    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(*x0)
+    f = jax.jit(loss)
+    for i, g in enumerate(grads):
+
+        def f1(v, i=i):
+            args = list(x0)
+            args[i] = v
+            return float(f(*args))
+
+        fd = central_difference(f1, x0[i], rel_step=1e-5)
+        assert float(g) == pytest.approx(fd, rel=1e-4), i
+        assert abs(float(g)) > 1e-3, i
