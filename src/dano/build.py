@@ -4,12 +4,14 @@ from pathlib import Path
 from typing import Literal
 
 import jax.numpy as jnp
+import numpy as np
 
 from dano.errors import DanoFileError, InvalidMassError
 from dano.fields import (
     MESH_SUFFIXES,
     AbstractField,
     TransformedField,
+    as_grid,
     from_spec,
     is_spec,
     load_grid,
@@ -21,7 +23,7 @@ from dano.fields.neural import is_neural_checkpoint
 from dano.io import load_npz
 from dano.mass import mass_properties
 from dano.reference import is_reference, load_reference
-from dano.surface import sample_surface
+from dano.surface import field_peak, sample_surface
 from dano.types import DANO
 
 
@@ -36,6 +38,7 @@ def build_dano(
     normals: Literal["autodiff", "fd"] = "autodiff",
     log2_samples: int = 15,
     replicates: int = 8,
+    grid_resolution: int = 48,
     source: str = "",
 ) -> DANO:
     """Builds a DANO from a field.
@@ -49,6 +52,8 @@ def build_dano(
         seed: seed of every random choice; the same seed gives the same DANO.
         normals: "autodiff" or "fd" (central differences).
         log2_samples, replicates: Monte Carlo budget of the mass properties (see `mass_properties`).
+        grid_resolution: nodes along the longest side of the baked density grid kept for contact
+            between DANOs (0: none).
         source: a note of where the field came from, kept in the file.
 
     Example:
@@ -57,6 +62,7 @@ def build_dano(
     """
     props = mass_properties(field, alpha=alpha, mass=mass, log2_samples=log2_samples, replicates=replicates, seed=seed)
     surface = sample_surface(field, n_points, window, seed=seed, normals=normals)
+    grid = _bake(field, grid_resolution) if grid_resolution else None
     return DANO(
         mass=props.mass,
         com=props.com,
@@ -70,7 +76,18 @@ def build_dano(
         com_stderr=props.com_stderr,
         inertia_stderr=props.inertia_stderr,
         source=source,
+        peak=jnp.asarray(field_peak(field, seed)),
+        grid=None if grid is None else grid.density,
+        grid_bounds=None if grid is None else grid.bounds,
     )
+
+
+def _bake(field: AbstractField, resolution: int):
+    """The field on a grid of cubic cells, `resolution` nodes along the longest side of its box."""
+    lo, hi = np.asarray(field.bounds)
+    h = float(np.max(hi - lo)) / (resolution - 1)
+    shape = tuple(int(np.ceil((hi[i] - lo[i]) / h)) + 1 for i in range(3))
+    return as_grid(field, shape)  # type: ignore[arg-type]
 
 
 def scale_lengths(dano: DANO, scale: float) -> DANO:
@@ -92,6 +109,11 @@ def scale_lengths(dano: DANO, scale: float) -> DANO:
         com_stderr=dano.com_stderr * s,
         inertia_stderr=dano.inertia_stderr * s**5,
         source=dano.source,
+        peak=dano.peak,
+        grid=dano.grid,
+        grid_bounds=None
+        if dano.grid_bounds is None
+        else (tuple(v * s for v in dano.grid_bounds[0]), tuple(v * s for v in dano.grid_bounds[1])),
     )
 
 

@@ -77,6 +77,24 @@ def _info(args: argparse.Namespace) -> None:
     print(f"surface points     {d['n_points']}, density window [{d['window'][0]:.6g}, {d['window'][1]:.6g}]")
 
 
+def _simulate(args: argparse.Namespace) -> None:
+    from dano.sim import load_scene
+    from dano.sim.run import Simulation, write_csv
+
+    scene = load_scene(args.scene)
+    sim = Simulation.from_scene(scene)
+    n = scene.n_steps if args.steps is None else args.steps
+    print(f"simulating {n} frames of {scene.timestep} s ({scene.substeps} substeps) ...", file=sys.stderr)
+    traj = sim.run(n)
+    write_csv(args.output, traj, sim)
+    bodies = len(sim.world.names) + sum(a >= 0 for a in sim.world.prim_qpos)
+    print(f"wrote {args.output}: {n + 1} frames x {bodies} bodies")
+    if args.video:
+        from dano.sim.render import render_video
+
+        print(f"wrote {render_video(sim, traj, args.video)}")
+
+
 def _demo(args: argparse.Namespace) -> None:
     from dano.demo import run_demo
 
@@ -106,6 +124,13 @@ def parser() -> argparse.ArgumentParser:
     i.add_argument("file")
     i.add_argument("--json", action="store_true", help="one JSON object (keys mass, com, inertia, n_points, ...)")
     i.set_defaults(run=_info)
+
+    s = sub.add_parser("simulate", help="simulate a scene TOML file, write the trajectory CSV (and a video)")
+    s.add_argument("scene", help="scene .toml (see README)")
+    s.add_argument("-o", "--output", required=True, help="trajectory CSV: t,body,x,y,z,qw,qx,qy,qz")
+    s.add_argument("--video", help="render to this .mp4 or .gif")
+    s.add_argument("--steps", type=int, help="frames to simulate (default: duration / timestep)")
+    s.set_defaults(run=_simulate)
 
     d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
     d.add_argument("--out", default="dano-demo", help="output folder (default dano-demo)")

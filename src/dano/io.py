@@ -18,7 +18,9 @@ from dano.errors import DanoError, DanoFileError
 from dano.types import DANO
 
 FORMAT = "dano"
-VERSION = 1
+VERSION = 2
+READABLE = (1, 2)
+"""Version 2 added the optional `peak`, `grid` and `grid_bounds` (for DANO-DANO contact)."""
 _ARRAYS = ("mass", "com", "inertia", "points", "densities", "normals", "alpha", "window",
            "mass_stderr", "com_stderr", "inertia_stderr")  # fmt: skip
 
@@ -68,6 +70,10 @@ def load_npz(path: str | Path, required: Iterable[str] = ()) -> dict[str, np.nda
 def save_dano(path: str | Path, dano: DANO) -> None:
     """Writes `dano` to `path` (conventionally `*.dano.npz`) atomically."""
     arrays = {name: np.asarray(getattr(dano, name)) for name in _ARRAYS}
+    if dano.peak is not None:
+        arrays["peak"] = np.asarray(dano.peak)
+    if dano.grid is not None:
+        arrays |= {"grid": np.asarray(dano.grid), "grid_bounds": np.asarray(dano.grid_bounds)}
     atomic_savez(path, format=np.str_(FORMAT), version=np.int64(VERSION), source=np.str_(dano.source), **arrays)
 
 
@@ -80,8 +86,8 @@ def load_dano(path: str | Path) -> DANO:
     data = load_npz(path, required=("format", "version"))
     if str(data["format"]) != FORMAT:
         raise DanoFileError(f"{path}: format is {str(data['format'])!r}, expected {FORMAT!r}")
-    if data["version"].shape != () or int(data["version"]) != VERSION:
-        raise DanoFileError(f"{path}: format version {data['version']} is not supported (this dano reads {VERSION})")
+    if data["version"].shape != () or int(data["version"]) not in READABLE:
+        raise DanoFileError(f"{path}: format version {data['version']} is not supported (this dano reads {READABLE})")
     missing = [k for k in _ARRAYS if k not in data]
     if missing:
         raise DanoFileError(f"{path}: missing arrays {missing}")
@@ -92,7 +98,26 @@ def load_dano(path: str | Path) -> DANO:
     for name, shape in _shapes(n).items():
         if data[name].shape != shape:
             raise DanoFileError(f"{path}: array {name!r} has shape {data[name].shape}, expected {shape}")
+    extra = _optional(path, data)
     try:
-        return DANO(**{k: jnp.asarray(data[k]) for k in _ARRAYS}, source=str(data.get("source", "")))
+        return DANO(**{k: jnp.asarray(data[k]) for k in _ARRAYS}, source=str(data.get("source", "")), **extra)
     except (ValueError, DanoError) as e:  # bad shapes, a non-positive mass
         raise DanoFileError(f"{path}: {e}") from None
+
+
+def _optional(path, data: dict[str, np.ndarray]) -> dict:
+    """The optional version-2 arrays, checked."""
+    extra: dict = {}
+    if "peak" in data:
+        if data["peak"].shape != () or not (np.isfinite(data["peak"]) and data["peak"] > 0):
+            raise DanoFileError(f"{path}: 'peak' must be a positive number")
+        extra["peak"] = jnp.asarray(data["peak"])
+    if "grid" in data:
+        grid, gb = data["grid"], data.get("grid_bounds")
+        if grid.ndim != 3 or gb is None or gb.shape != (2, 3) or not np.all(gb[1] > gb[0]):
+            raise DanoFileError(f"{path}: 'grid' must be 3-D with 'grid_bounds' of shape (2, 3)")
+        if not np.all(np.isfinite(grid)) or np.any(grid < 0):
+            raise DanoFileError(f"{path}: 'grid' must be finite and non-negative")
+        extra["grid"] = jnp.asarray(grid)
+        extra["grid_bounds"] = (tuple(map(float, gb[0])), tuple(map(float, gb[1])))
+    return extra

@@ -29,6 +29,10 @@ class DANO(eqx.Module):
         com_stderr: (3,) standard error of `com`, m.
         inertia_stderr: (3, 3) standard error of `inertia`, kg m^2.
         source: where the DANO came from (file, spec), for the record.
+        peak: () the field's robust peak density (its "fully inside" level), or None.
+        grid: (nx, ny, nz) the field baked on a grid over `grid_bounds`, for contact with other
+            DANOs without querying the original field (None when the field is unknown).
+        grid_bounds: ((3,), (3,)) box of `grid`, object frame, m.
     """
 
     mass: Float[Array, ""]
@@ -43,6 +47,11 @@ class DANO(eqx.Module):
     com_stderr: Float[Array, " 3"]
     inertia_stderr: Float[Array, "3 3"]
     source: str = eqx.field(static=True, default="")
+    peak: Float[Array, ""] | None = None
+    grid: Float[Array, "nx ny nz"] | None = None
+    grid_bounds: tuple[tuple[float, float, float], tuple[float, float, float]] | None = eqx.field(
+        static=True, default=None
+    )
 
     def __check_init__(self):
         n = self.points.shape[0]

@@ -1,9 +1,15 @@
 """DANOs inside MuJoCo MJX: scenes, the contact step, rollouts."""
 
-from dano.sim.scene import DanoBody, Params, Primitive, Scene, World, compile_scene, pairs
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; must be set before mujoco is imported
+
+# ruff: noqa: E402
+
+from dano.sim.scene import DanoBody, Params, Primitive, Scene, SceneError, World, compile_scene, load_scene, pairs
 from dano.sim.step import Trajectory, contact_xfrc, rollout, scaled_model, step
 
 __all__ = [
-    "DanoBody", "Params", "Primitive", "Scene", "Trajectory", "World", "compile_scene", "contact_xfrc", "pairs",
-    "rollout", "scaled_model", "step",
+    "DanoBody", "Params", "Primitive", "Scene", "SceneError", "Trajectory", "World", "compile_scene", "contact_xfrc",
+    "load_scene", "pairs", "rollout", "scaled_model", "step",
 ]  # fmt: skip

@@ -27,6 +27,10 @@ PrimitiveKind = Literal["sphere", "capsule", "box"]
 Mode = Literal["static", "free", "mocap"]
 
 
+class SceneError(ValueError):
+    """A scene file that cannot be understood (unknown key, wrong type, missing file)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class DanoBody:
     """A DANO placed in the world.
@@ -38,6 +42,8 @@ class DanoBody:
         quat: (4,) initial orientation w, x, y, z, object frame -> world.
         vel: (3,) initial velocity of the centre of mass, world, m/s.
         angvel: (3,) initial angular velocity, world, rad/s.
+        field: the density field to query online in contacts with other DANOs (e.g. the neural
+            network itself); None uses the grid baked into the DANO (the fast path).
     """
 
     name: str
@@ -46,6 +52,18 @@ class DanoBody:
     quat: Quat = (1.0, 0.0, 0.0, 0.0)
     vel: Vec3 = (0.0, 0.0, 0.0)
     angvel: Vec3 = (0.0, 0.0, 0.0)
+    field: object = None
+
+
+def _contact_field(body: DanoBody):
+    """The field a DANO's partners query: the online field if given, else its baked grid."""
+    from dano.fields import GridField
+
+    if body.field is not None:
+        return body.field
+    if body.dano.grid is None:
+        return None
+    return GridField(jnp.asarray(body.dano.grid), body.dano.grid_bounds)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,13 +121,26 @@ class Scene:
 
 
 class DanoState(eqx.Module):
-    """Per-DANO constant data used inside the step: points (3, n) in the body frame (m) and
-    the normalised densities (n,) (weights are these times the current mass)."""
+    """Per-DANO constant data used inside the step.
+
+    Attributes:
+        points: (3, n) surface points, body frame (origin at the centre of mass), m.
+        normals: (3, n) their outward normals, body frame.
+        shares: (n,) normalised densities; the contact weights are these times the current mass.
+        mass, inertia: base mass (kg) and inertia about the centre of mass (body frame).
+        com: (3,) centre of mass in the object frame (to query `field`), m.
+        field: density field in the object frame, for contact with other DANOs (None: unavailable).
+        peak: the field's "fully inside" density.
+    """
 
     points: Float[Array, "3 n"]
+    normals: Float[Array, "3 n"]
     shares: Float[Array, " n"]
     mass: Float[Array, ""]
     inertia: Float[Array, "3 3"]
+    com: Float[Array, " 3"]
+    field: object
+    peak: Float[Array, ""]
 
 
 class World(eqx.Module):
@@ -197,6 +228,17 @@ def _add_primitive(spec: mujoco.MjSpec, p: Primitive) -> None:
     b.add_geom(type=_GEOM[p.kind], size=_mj_size(p), mass=p.mass if p.mode == "free" else 0.0)
 
 
+def _add_visuals(spec: mujoco.MjSpec) -> None:
+    """A checker floor material and a light (rendering only)."""
+    spec.add_texture(
+        name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D, builtin=mujoco.mjtBuiltin.mjBUILTIN_CHECKER,
+        rgb1=[0.25, 0.28, 0.32], rgb2=[0.18, 0.2, 0.23], width=256, height=256,
+    )  # fmt: skip
+    material = spec.add_material(name="grid", texrepeat=[10, 10], reflectance=0.1)
+    material.textures[mujoco.mjtTextureRole.mjTEXROLE_RGB] = "grid"
+    spec.worldbody.add_light(pos=[0, 0, 3], dir=[0, 0, -1], diffuse=[0.7, 0.7, 0.7])
+
+
 def _mj_size(p: Primitive) -> list[float]:
     return list(p.size) + [0.0] * (3 - len(p.size))
 
@@ -211,12 +253,23 @@ def compile_scene(scene: Scene):
     names = [b.name for b in scene.bodies] + [p.name for p in scene.primitives]
     if len(set(names)) != len(names) or "ground" in names:
         raise ValueError(f"body names must be unique and not 'ground', got {names}")
+    if len(scene.bodies) > 1:
+        blind = [b.name for b in scene.bodies if b.field is None and b.dano.grid is None]
+        if blind:
+            raise SceneError(
+                f"DANOs {blind} carry no density grid, so they cannot touch other DANOs: rebuild them with "
+                "`dano build` from a field (reference colliders have none), or pass field= to DanoBody"
+            )
     spec = mujoco.MjSpec()
     spec.option.timestep = scene.timestep / scene.substeps
     spec.option.gravity = list(scene.gravity)
+    _add_visuals(spec)
     if scene.ground_height is not None:
-        spec.worldbody.add_geom(name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1],
-                                pos=[0, 0, scene.ground_height])  # fmt: skip
+        spec.worldbody.add_geom(
+            name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], pos=[0, 0, scene.ground_height],
+            material="grid",
+        )  # fmt: skip
+
     for body in scene.bodies:
         _add_dano(spec, body)
     for p in scene.primitives:
@@ -232,6 +285,10 @@ def compile_scene(scene: Scene):
             shares=b.dano.densities / jnp.sum(b.dano.densities),
             mass=jnp.asarray(b.dano.mass),
             inertia=jnp.asarray(b.dano.inertia),
+            com=jnp.asarray(b.dano.com),
+            field=_contact_field(b),
+            peak=jnp.asarray(b.dano.peak if b.dano.peak is not None else jnp.max(b.dano.densities)),
+            normals=jnp.asarray(b.dano.normals.T),
         )
         for b in scene.bodies
     )
@@ -282,3 +339,87 @@ def _set_free(model, qpos, qvel, a, v, pos, quat, vel, angvel) -> None:
     mujoco.mju_quat2Mat(R, q)
     qvel[v : v + 3] = vel
     qvel[v + 3 : v + 6] = R.reshape(3, 3).T @ np.asarray(angvel, dtype=float)  # MuJoCo: body frame
+
+
+_SIM_KEYS = {"timestep", "duration", "gravity", "substeps", "force_mode"}
+_BODY_KEYS = {"name", "dano", "pos", "quat", "vel", "angvel", "mass"}
+_PRIM_KEYS = {"name", "type", "size", "pos", "quat", "mode", "mass", "vel", "angvel"}
+_CONTACT_KEYS = {f.name for f in dataclasses.fields(ContactParams)}
+
+
+def _check_keys(table: dict, allowed: set[str], where: str, path) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise SceneError(f"{path}: unknown key(s) {unknown} in {where}; allowed: {sorted(allowed)}")
+
+
+def _contact(table: dict, base: ContactParams, where: str, path) -> ContactParams:
+    _check_keys(table, _CONTACT_KEYS, where, path)
+    try:
+        return dataclasses.replace(base, **{k: float(v) for k, v in table.items()})
+    except (TypeError, ValueError) as e:
+        raise SceneError(f"{path}: bad value in {where}: {e}") from None
+
+
+def load_scene(path) -> Scene:
+    """Reads a scene TOML file (format in README); `dano` paths are relative to the file.
+
+    Raises:
+        SceneError: unknown keys, bad values, or a missing DANO file.
+    """
+    import tomllib
+    from pathlib import Path
+
+    from dano.errors import DanoError
+    from dano.io import load_dano
+
+    path = Path(path)
+    try:
+        doc = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise SceneError(f"{path}: no such file") from None
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{path}: not valid TOML ({e})") from None
+    _check_keys(doc, {"sim", "ground", "body", "primitive", "contact", "pair"}, "the top level", path)
+    sim = doc.get("sim", {})
+    _check_keys(sim, _SIM_KEYS, "[sim]", path)
+    contact = _contact(doc.get("contact", {}), ContactParams(), "[contact]", path)
+    bodies = []
+    for i, b in enumerate(doc.get("body", [])):
+        _check_keys(b, _BODY_KEYS, f"[[body]] #{i + 1}", path)
+        if "name" not in b or "dano" not in b:
+            raise SceneError(f"{path}: [[body]] #{i + 1} needs 'name' and 'dano'")
+        try:
+            obj = load_dano(path.parent / b["dano"])
+            obj = obj.with_mass(float(b["mass"])) if "mass" in b else obj
+        except DanoError as e:
+            raise SceneError(f"{path}: [[body]] {b['name']!r}: {e}") from None
+        kw = {k: tuple(float(x) for x in b[k]) for k in ("pos", "quat", "vel", "angvel") if k in b}
+        bodies.append(DanoBody(b["name"], obj, **kw))
+    prims = []
+    for i, p in enumerate(doc.get("primitive", [])):
+        _check_keys(p, _PRIM_KEYS, f"[[primitive]] #{i + 1}", path)
+        kw = {k: tuple(float(x) for x in p[k]) for k in ("size", "pos", "quat", "vel", "angvel") if k in p}
+        mode, mass = p.get("mode", "static"), float(p.get("mass", 1.0))
+        prims.append(Primitive(p["name"], p["type"], mode=mode, mass=mass, **kw))
+    pair_contact = []
+    for i, p in enumerate(doc.get("pair", [])):
+        if "a" not in p or "b" not in p:
+            raise SceneError(f"{path}: [[pair]] #{i + 1} needs 'a' (a DANO) and 'b' (another body or 'ground')")
+        rest = {k: v for k, v in p.items() if k not in ("a", "b")}
+        pair_contact.append(((p["a"], p["b"]), _contact(rest, contact, f"[[pair]] #{i + 1}", path)))
+    ground = doc.get("ground")
+    if ground is not None:
+        _check_keys(ground, {"height"}, "[ground]", path)
+    return Scene(
+        timestep=float(sim.get("timestep", 0.002)),
+        substeps=int(sim.get("substeps", 4)),
+        duration=float(sim.get("duration", 1.0)),
+        gravity=tuple(float(g) for g in sim.get("gravity", (0.0, 0.0, -9.81))),  # type: ignore[arg-type]
+        ground_height=None if ground is None else float(ground.get("height", 0.0)),
+        bodies=tuple(bodies),
+        primitives=tuple(prims),
+        contact=contact,
+        pair_contact=tuple(pair_contact),
+        force_mode=sim.get("force_mode", "points"),
+    )

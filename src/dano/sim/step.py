@@ -15,8 +15,8 @@ from mujoco import mjx
 from dano.contact import Box, Capsule, HalfSpace, Sphere, expected_overlap
 from dano.contact.overlap import outward_normal
 from dano.contact.wrench import ContactParams, point_wrench
-from dano.math import quat_to_mat
-from dano.sim.scene import Params, World, pairs
+from dano.math import normalize, quat_to_mat
+from dano.sim.scene import DanoState, Params, World, pairs
 
 
 class Frame(eqx.Module):
@@ -65,15 +65,22 @@ def primitive_shape(world: World, k: int, f: Frame):
 
 class Body(eqx.Module):
     """A DANO's contact data at the current scales: body-frame points (3, n), weights (n,) kg,
-    mass kg, inertia about the centre of mass (3, 3) body frame."""
+    mass kg, inertia about the centre of mass (3, 3) body frame, and its `DanoState`."""
 
     points: Float[Array, "3 n"]
     weights: Float[Array, " n"]
     mass: Float[Array, ""]
     inertia: Float[Array, "3 3"]
+    state: DanoState
 
 
-def implicit_damper(p: ContactParams, psi, normal, chi, a: Frame, body: Body, other_inv_mass: float, dt: float):
+def inverse_effective_mass(body: Body, a: Frame, at: Array, normal: Array) -> Array:
+    """1 / effective mass of a body at world point `at` along `normal`: 1/m + (r x n)^T I^-1 (r x n)."""
+    rn = jnp.cross(at - a.x, normal)
+    return 1.0 / body.mass + rn @ (a.R @ jnp.linalg.solve(body.inertia, a.R.T @ rn))
+
+
+def implicit_damper(p: ContactParams, psi, inv_m_eff, dt: float) -> ContactParams:
     """Contact parameters with the damper made linearly implicit: c_d / (1 + dt c_d psi / m_eff).
 
     An explicit damper c_d psi is unstable once dt c_d psi / m_eff > 2 (deep or wide contacts);
@@ -81,9 +88,6 @@ def implicit_damper(p: ContactParams, psi, normal, chi, a: Frame, body: Body, ot
     relative motion in one step, smoothly, and changes nothing when dt c_d psi << m_eff.
     m_eff is the effective mass of the contact along the normal at chi (both bodies).
     """
-    rn = jnp.cross(chi - a.x, normal)
-    inv_inertia = a.R @ jnp.linalg.inv(body.inertia) @ a.R.T
-    inv_m_eff = 1.0 / body.mass + rn @ inv_inertia @ rn + other_inv_mass
     factor = 1.0 + dt * p.impact_damper * psi * inv_m_eff
     return eqx.tree_at(lambda q: q.impact_damper, p, p.impact_damper / factor)
 
@@ -96,13 +100,21 @@ def pair_wrench(p: ContactParams, shape, body: Body, a: Frame, b: Frame, mode: s
     """
     P = a.R @ body.points + a.x[:, None]
     o = expected_overlap(shape, P, body.weights, p.indicator_width)
-    p = implicit_damper(p, o.psi, o.normal, o.chi, a, body, other_inv_mass, dt)
+    p = implicit_damper(p, o.psi, inverse_effective_mass(body, a, o.chi, o.normal) + other_inv_mass, dt)
     if mode == "centroid":
         at, psi, normal = o.chi[:, None], o.psi[None], o.normal[:, None]
     elif isinstance(shape, HalfSpace):
         at, psi, normal = P, o.inside, o.normal[:, None]
     else:
         at, psi, normal = P, o.inside, jax.vmap(outward_normal, (None, 1), 1)(shape, P)
+    return _apply(p, at, psi, normal, a, b)
+
+
+def _apply(p: ContactParams, at: Array, psi: Array, normal: Array, a: Frame, b: Frame):
+    """Eqs. 11-16 at points `at` (3, k) with overlaps `psi` (k,) and normals (3, k) or (3, 1).
+
+    Returns the force on `a` (3,) and its torque about a's centre of mass (3,), world frame.
+    """
     r = at - a.x[:, None]
     u_a = a.v[:, None] + jnp.cross(a.w[:, None], r, axis=0)
     u_b = b.v[:, None] + jnp.cross(b.w[:, None], at - b.x[:, None], axis=0)
@@ -110,6 +122,37 @@ def pair_wrench(p: ContactParams, shape, body: Body, a: Frame, b: Frame, mode: s
     force = jnp.sum(f, axis=1)
     torque = jnp.sum(tau, axis=1) + jnp.sum(jnp.cross(r, f, axis=0), axis=1)
     return force, torque
+
+
+def occupancy(state: DanoState, frame: Frame, world_points: Float[Array, "3 k"]) -> Float[Array, " k"]:
+    """How much each world point is inside a DANO: its field there over its peak, in [0, 1]."""
+    local = frame.R.T @ (world_points - frame.x[:, None]) + state.com[:, None]
+    return jnp.clip(state.field(local.T) / state.peak, 0.0, 1.0)
+
+
+def dano_pair_wrench(p: ContactParams, A: Body, B: Body, a: Frame, b: Frame, mode: str, dt: float):
+    """Wrench on DANO A from DANO B (eqs. 9-10 and the normal after them).
+
+    Each body's surface points count with their weight times the other body's occupancy there
+    (its density over its peak): in kg, like the primitive case, whose occupancy is the indicator.
+    The normal (from B towards A) is the overlap-weighted sum of B's outward normals at B's points
+    minus A's at A's points. Returns the force on A and its torque about A's centre of mass.
+    """
+    PA = a.R @ A.points + a.x[:, None]
+    PB = b.R @ B.points + b.x[:, None]
+    psi_a = A.weights * occupancy(B.state, b, PA)
+    psi_b = B.weights * occupancy(A.state, a, PB)
+    at = jnp.concatenate([PA, PB], axis=1)
+    psi = jnp.concatenate([psi_a, psi_b])
+    n_bar = (b.R @ B.state.normals) @ psi_b - (a.R @ A.state.normals) @ psi_a
+    normal = normalize(n_bar)
+    total = jnp.sum(psi)
+    chi = at @ psi / jnp.where(total > 0, total, 1.0)
+    inv_m = inverse_effective_mass(A, a, chi, normal) + inverse_effective_mass(B, b, chi, normal)
+    p = implicit_damper(p, total, inv_m, dt)
+    if mode == "centroid":
+        return _apply(p, chi[:, None], total[None], normal[:, None], a, b)
+    return _apply(p, at, psi, normal[:, None], a, b)
 
 
 def contact_xfrc(
@@ -128,7 +171,8 @@ def contact_xfrc(
             s.shares * s.mass * params.mass_scale[i],
             s.mass * params.mass_scale[i],
             s.inertia * params.mass_scale[i] * params.inertia_scale[i],
-        )  # fmt: skip
+            s,
+        )
         for i, s in enumerate(world.danos)
     ]
     for p, (i, kind, k) in zip(params.contact, pairs(world), strict=True):
@@ -142,7 +186,12 @@ def contact_xfrc(
             other = world.prim_body[k] if world.prim_mode[k] == "free" else None
             inv_mass = 1.0 / world.prim_mass[k]
         else:
-            raise NotImplementedError("DANO-DANO contact")  # pragma: no cover
+            b = frames[k]
+            force, torque = dano_pair_wrench(p, bodies[i], bodies[k], a, b, world.force_mode, world.dt)
+            xfrc = xfrc.at[world.dano_body[i]].add(jnp.concatenate([force, torque]))
+            reaction = -(torque + jnp.cross(a.x - b.x, force))
+            xfrc = xfrc.at[world.dano_body[k]].add(jnp.concatenate([-force, reaction]))
+            continue
         force, torque = pair_wrench(p, shape, bodies[i], a, b, world.force_mode, inv_mass, world.dt)
         xfrc = xfrc.at[world.dano_body[i]].add(jnp.concatenate([force, torque]))
         if other is not None:
