@@ -54,6 +54,9 @@ class ContactParams(eqx.Module):
     """s of C(a), s/m: slip speeds well above 1/s feel full dry friction."""
     coulomb_regularizer: Scalar = _param(1e-3)
     """eps of C(a), m/s."""
+    coulomb_gain: Scalar = _param(2 / 3.141592653589793)
+    """g of C(a) = -g atan(s|a|) a / (eps + |a|): 2/pi saturates at 1. The reference's stored
+    trajectories were made with g = 1 (dry friction pi/2 times the nominal coefficient)."""
     indicator_width: Scalar = _param(5e-4)
     """delta of the smooth inside test, m; 0 is the paper's hard indicator."""
 
@@ -65,10 +68,10 @@ class Wrench(eqx.Module):
     torque: Float[Array, " 3"]
 
 
-def coulomb_direction(a: Float[Array, "3 ..."], smoothing, regularizer) -> Float[Array, "3 ..."]:
-    """C(a) = -(2/pi) atan(s|a|) a / (eps + |a|); vectors along axis 0."""
+def coulomb_direction(a: Float[Array, "3 ..."], smoothing, regularizer, gain=2 / jnp.pi) -> Float[Array, "3 ..."]:
+    """C(a) = -g atan(s|a|) a / (eps + |a|), g = 2/pi by default; vectors along axis 0."""
     norm = safe_norm(a, axis=0)[None]
-    return -(2 / jnp.pi) * jnp.arctan(smoothing * norm) * a / (regularizer + norm)
+    return -gain * jnp.arctan(smoothing * norm) * a / (regularizer + norm)
 
 
 def _split(a: Float[Array, "3 ..."], n: Float[Array, "3 ..."]):
@@ -89,7 +92,7 @@ def point_wrench(
     w_n, w_t = _split(omega, normal)
     f_imp = psi[None] * (p.impact_spring * normal - p.impact_damper * u_n)
     mag = safe_norm(f_imp, axis=0)[None]
-    c = lambda a: coulomb_direction(a, p.coulomb_smoothing, p.coulomb_regularizer)  # noqa: E731
+    c = lambda a: coulomb_direction(a, p.coulomb_smoothing, p.coulomb_regularizer, p.coulomb_gain)  # noqa: E731
     f_t = mag * (-p.sliding_drag * u_t + p.sliding_friction * c(u_t))
     tau_n = mag * (-p.torsional_drag * w_n + p.torsional_friction * c(w_n))
     tau_t = mag * (-p.rolling_drag * w_t + p.rolling_friction * c(w_t))

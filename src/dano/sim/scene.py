@@ -203,12 +203,27 @@ def _add_dano(spec: mujoco.MjSpec, body: DanoBody) -> None:
     d = body.dano
     b = spec.worldbody.add_body(name=body.name, pos=list(body.pos), quat=list(body.quat))
     b.add_freejoint(name=f"{body.name}_free")
-    J = np.asarray(d.inertia, dtype=np.float64)
     b.mass = float(d.mass)
     b.ipos = [0.0, 0.0, 0.0]
     b.iquat = [1.0, 0.0, 0.0, 0.0]
-    b.fullinertia = [J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2]]
+    b.inertia = [1.0, 1.0, 1.0]  # replaced after compiling by `_set_inertia`
     b.explicitinertial = True
+
+
+def _set_inertia(model: mujoco.MjModel, body: int, inertia: np.ndarray) -> None:
+    """Writes a full inertia tensor (body frame) as MuJoCo's principal moments and frame.
+
+    Done on the compiled model rather than through `fullinertia` because the compiler rejects
+    tensors that break the triangle inequality, and the reference DANOs (which simulate with the
+    second moment, see `dano.reference`) need exactly such a tensor to be reproduced.
+    """
+    moments, axes = np.linalg.eigh(np.asarray(inertia, dtype=np.float64))
+    if np.linalg.det(axes) < 0:
+        axes[:, 0] = -axes[:, 0]
+    quat = np.zeros(4)
+    mujoco.mju_mat2Quat(quat, axes.ravel())
+    model.body_inertia[body] = moments
+    model.body_iquat[body] = quat
 
 
 _GEOM = {
@@ -275,6 +290,8 @@ def compile_scene(scene: Scene):
     for p in scene.primitives:
         _add_primitive(spec, p)
     model = spec.compile()
+    for body in scene.bodies:
+        _set_inertia(model, model.body(body.name).id, np.asarray(body.dano.inertia))
 
     def jnt(name):
         return model.joint(f"{name}_free").id
