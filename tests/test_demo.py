@@ -17,3 +17,6 @@ def test_demo_writes_a_bunny_dano_and_its_picture(tmp_path, capsys):
     # A 64-node grid: the soft edge spans ~4 % of the bunny, so allow 3 % (the 96-node default gets 0.6 %).
     assert summary["inertia_rel_error"] < 0.03
     assert summary["mass_kg"] == pytest.approx(summary["mass_of_water_bunny_kg"], rel=0.02)
+    for name in ("bunny_drop", "fig5_sphere_hits_two_bunnies"):
+        assert (tmp_path / f"{name}.mp4").stat().st_size > 10_000
+        assert summary[name]["final_speed_m_s"] < 1e-3  # everything comes to rest within 1.5 s

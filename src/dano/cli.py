@@ -98,7 +98,7 @@ def _simulate(args: argparse.Namespace) -> None:
 def _demo(args: argparse.Namespace) -> None:
     from dano.demo import run_demo
 
-    run_demo(args.out, resolution=args.resolution, seed=args.seed)
+    run_demo(args.out, resolution=args.resolution, seed=args.seed, simulate=not args.no_sim)
 
 
 def parser() -> argparse.ArgumentParser:
@@ -136,6 +136,7 @@ def parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="dano-demo", help="output folder (default dano-demo)")
     d.add_argument("--resolution", type=int, default=96)
     d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--no-sim", action="store_true", help="only build and plot the DANO")
     d.set_defaults(run=_demo)
     return p
 
