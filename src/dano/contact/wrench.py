@@ -79,6 +79,28 @@ def _split(a: Float[Array, "3 ..."], n: Float[Array, "3 ..."]):
     return normal, a - normal
 
 
+def sliding_force(
+    p: ContactParams, psi: Float[Array, "..."], normal: Float[Array, "3 ..."], u: Float[Array, "3 ..."]
+) -> tuple[Float[Array, "3 ..."], Float[Array, "..."]]:
+    """Normal and sliding force (eqs. 11-12) and |F_imp|; vectors along axis 0 ((3,) or (3, n))."""
+    u_n, u_t = _split(u, normal)
+    f_imp = psi[None] * (p.impact_spring * normal - p.impact_damper * u_n)
+    mag = safe_norm(f_imp, axis=0)
+    c = coulomb_direction(u_t, p.coulomb_smoothing, p.coulomb_regularizer, p.coulomb_gain)
+    return f_imp + mag[None] * (-p.sliding_drag * u_t + p.sliding_friction * c), mag
+
+
+def spin_torque(
+    p: ContactParams, magnitude: Float[Array, "..."], normal: Float[Array, "3 ..."], omega: Float[Array, "3 ..."]
+) -> Float[Array, "3 ..."]:
+    """Torsional and rolling friction torques (eqs. 13-14) for normal-force magnitudes `magnitude`."""
+    w_n, w_t = _split(omega, normal)
+    c = lambda a: coulomb_direction(a, p.coulomb_smoothing, p.coulomb_regularizer, p.coulomb_gain)  # noqa: E731
+    return magnitude[None] * (
+        -p.torsional_drag * w_n + p.torsional_friction * c(w_n) - p.rolling_drag * w_t + p.rolling_friction * c(w_t)
+    )
+
+
 def point_wrench(
     p: ContactParams,
     psi: Float[Array, "..."],
@@ -88,15 +110,8 @@ def point_wrench(
 ) -> tuple[Float[Array, "3 ..."], Float[Array, "3 ..."]]:
     """Force and pure torque (eqs. 11-14) of overlaps `psi` with contact-point velocities `u` and
     relative angular velocities `omega`, world frame; vectors along axis 0 (shape (3,) or (3, n))."""
-    u_n, u_t = _split(u, normal)
-    w_n, w_t = _split(omega, normal)
-    f_imp = psi[None] * (p.impact_spring * normal - p.impact_damper * u_n)
-    mag = safe_norm(f_imp, axis=0)[None]
-    c = lambda a: coulomb_direction(a, p.coulomb_smoothing, p.coulomb_regularizer, p.coulomb_gain)  # noqa: E731
-    f_t = mag * (-p.sliding_drag * u_t + p.sliding_friction * c(u_t))
-    tau_n = mag * (-p.torsional_drag * w_n + p.torsional_friction * c(w_n))
-    tau_t = mag * (-p.rolling_drag * w_t + p.rolling_friction * c(w_t))
-    return f_imp + f_t, tau_n + tau_t
+    force, mag = sliding_force(p, psi, normal, u)
+    return force, spin_torque(p, mag, normal, omega)
 
 
 def contact_wrench(

@@ -14,7 +14,7 @@ from mujoco import mjx
 
 from dano.contact import Box, Capsule, HalfSpace, Sphere, expected_overlap
 from dano.contact.overlap import outward_normal
-from dano.contact.wrench import ContactParams, point_wrench
+from dano.contact.wrench import ContactParams, sliding_force, spin_torque
 from dano.math import normalize, quat_to_mat
 from dano.sim.scene import DanoState, Params, World, pairs
 
@@ -118,7 +118,11 @@ def _apply(p: ContactParams, at: Array, psi: Array, normal: Array, a: Frame, b: 
     r = at - a.x[:, None]
     u_a = a.v[:, None] + jnp.cross(a.w[:, None], r, axis=0)
     u_b = b.v[:, None] + jnp.cross(b.w[:, None], at - b.x[:, None], axis=0)
-    f, tau = point_wrench(p, psi, normal, u_a - u_b, (a.w - b.w)[:, None])
+    f, magnitude = sliding_force(p, psi, normal, u_a - u_b)
+    if normal.shape[1] == 1:  # one normal: the spin torques of all points add up before the Coulomb law
+        tau = spin_torque(p, jnp.sum(magnitude)[None], normal, (a.w - b.w)[:, None])
+    else:
+        tau = spin_torque(p, magnitude, normal, (a.w - b.w)[:, None])
     force = jnp.sum(f, axis=1)
     torque = jnp.sum(tau, axis=1) + jnp.sum(jnp.cross(r, f, axis=0), axis=1)
     return force, torque

@@ -1,0 +1,85 @@
+"""Simulation speed on this machine, side by side in one run.
+
+- steps/s of the bunny DANO (5000 points) resting on the ground: single rollout, vmapped 64 and
+  1024 environments, per-point and centroid force modes; JIT compile time apart;
+- the same scene in MuJoCo C with the bunny as a CoACD convex decomposition (the mesh path);
+- a DANO-DANO step with the partner's density from its neural network vs from the baked grid.
+
+Run: `python bench/simulate.py`. A "step" is one MuJoCo step (a frame has `substeps` of them).
+"""
+
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from dano import build_dano
+from dano.baselines.mesh import convex_decomposition, mujoco_mesh_model
+from dano.demo import bunny_mesh
+from dano.fields import NeuralField, mesh_field
+from dano.sim import DanoBody, Scene
+from dano.sim.run import Simulation
+from dano.sim.step import rollout
+
+
+def timed_rollout(sim: Simulation, frames: int, batch: int | None = None):
+    d = sim.data
+    if batch is None:
+        fn = eqx.filter_jit(lambda d: rollout(sim.world, sim.params, sim.mjx_model, d, frames).qpos[-1])
+    else:
+        d = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), d)
+        d = d.replace(qvel=d.qvel.at[:, 0].set(jnp.linspace(0.0, 0.5, batch)))
+        fn = eqx.filter_jit(jax.vmap(lambda d: rollout(sim.world, sim.params, sim.mjx_model, d, frames).qpos[-1]))
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(d))
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(d))
+    run = time.perf_counter() - t0
+    steps = frames * sim.world.substeps * (batch or 1)
+    return steps / run, first - run
+
+
+def main() -> None:
+    mesh = bunny_mesh()
+    bunny = build_dano(mesh_field(mesh, resolution=80, progress=False), n_points=5000)
+    lift = -float(np.min(np.asarray(bunny.body_points)[:, 2]))
+    rows = []
+    for mode in ("points", "centroid"):
+        sim = Simulation.from_scene(Scene(bodies=(DanoBody("bunny", bunny, pos=(0, 0, lift)),), force_mode=mode))
+        for batch, frames in ((None, 500), (64, 50), (1024, 5)):
+            rate, compile_s = timed_rollout(sim, frames, batch)
+            rows.append((f"DANO bunny, {mode}, {batch or 1} env", rate, compile_s))
+
+    pieces = convex_decomposition(mesh.simplify_quadric_decimation(face_count=8000), threshold=0.08, max_hulls=16)
+    model = mujoco_mesh_model(pieces, float(bunny.mass), pos=(0, 0, 0.1), timestep=0.0005)
+    data = mujoco.MjData(model)
+    for _ in range(2000):
+        mujoco.mj_step(model, data)
+    t0 = time.perf_counter()
+    for _ in range(4000):
+        mujoco.mj_step(model, data)
+    c_rate = 4000 / (time.perf_counter() - t0)
+    rows.append((f"MuJoCo C, CoACD bunny ({len(pieces)} hulls)", c_rate, 0.0))
+
+    # DANO-DANO: two bunnies touching; the partner's density from a network vs its baked grid.
+    network = NeuralField(bunny.grid_bounds, key=jax.random.key(0))
+    for label, field in (("baked grid", None), ("network 8x128", network)):
+        bodies = (
+            DanoBody("a", bunny, pos=(0, 0, lift), field=field),
+            DanoBody("b", bunny, pos=(0.12, 0, lift), field=field),
+        )
+        sim = Simulation.from_scene(Scene(bodies=bodies))
+        rate, compile_s = timed_rollout(sim, 20)
+        rows.append((f"two DANO bunnies, {label}", rate, compile_s))
+
+    print(f"{'scene':44}{'steps/s':>14}{'JIT compile [s]':>18}{'ratio to MuJoCo C':>20}")
+    for name, rate, compile_s in rows:
+        print(f"{name:44}{rate:>14,.0f}{compile_s:>18.1f}{rate / c_rate:>20.2f}")
+
+
+if __name__ == "__main__":
+    main()
