@@ -5,6 +5,7 @@ from dano.contact.overlap import (
     Capsule,
     HalfSpace,
     Overlap,
+    Polytope,
     Sphere,
     expected_overlap,
     signed_distance,
@@ -12,6 +13,6 @@ from dano.contact.overlap import (
 from dano.contact.wrench import ContactParams, Wrench, contact_wrench, coulomb_direction, point_wrench
 
 __all__ = [
-    "Box", "Capsule", "ContactParams", "HalfSpace", "Overlap", "Sphere", "Wrench", "contact_wrench",
+    "Box", "Capsule", "ContactParams", "HalfSpace", "Overlap", "Polytope", "Sphere", "Wrench", "contact_wrench",
     "coulomb_direction", "expected_overlap", "point_wrench", "signed_distance",
 ]  # fmt: skip

@@ -51,7 +51,17 @@ class Box(eqx.Module):
     half_size: Float[Array, " 3"]
 
 
-Primitive = HalfSpace | Sphere | Capsule | Box
+class Polytope(eqx.Module):
+    """A convex polytope (a convex collision mesh) as an intersection of half-spaces:
+    {y : normals_k . (R^T (y - center)) <= offsets_k for all k}, planes in its own frame."""
+
+    center: Float[Array, " 3"]
+    rotation: Float[Array, "3 3"]
+    normals: Float[Array, "k 3"]
+    offsets: Float[Array, " k"]
+
+
+Primitive = HalfSpace | Sphere | Capsule | Box | Polytope
 
 
 def signed_distance(shape: Primitive, y: Float[Array, "3 n"]) -> Float[Array, " n"]:
@@ -68,6 +78,11 @@ def signed_distance(shape: Primitive, y: Float[Array, "3 n"]) -> Float[Array, " 
     if isinstance(shape, Box):
         q = jnp.abs(shape.rotation.T @ (y - shape.center[:, None])) - shape.half_size[:, None]
         return safe_norm(jnp.maximum(q, 0.0), axis=0) + jnp.minimum(jnp.max(q, axis=0), 0.0)
+    if isinstance(shape, Polytope):
+        # max_k of the plane distances: the exact signed distance inside, a lower bound outside
+        # (exact off the faces), which is all the inside test and the normal need.
+        local = shape.rotation.T @ (y - shape.center[:, None])
+        return jnp.max(shape.normals @ local - shape.offsets[:, None], axis=0)
     raise TypeError(f"no signed distance for {type(shape).__name__}")
 
 

@@ -6,10 +6,22 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; must be set bef
 
 # ruff: noqa: E402
 
-from dano.sim.scene import DanoBody, Params, Primitive, Scene, SceneError, World, compile_scene, load_scene, pairs
+from dano.sim.scene import (
+    DanoBody,
+    Params,
+    Primitive,
+    Robot,
+    Scene,
+    SceneError,
+    World,
+    compile_scene,
+    load_scene,
+    pairs,
+    panda,
+)
 from dano.sim.step import Trajectory, contact_xfrc, rollout, scaled_model, step
 
 __all__ = [
-    "DanoBody", "Params", "Primitive", "Scene", "SceneError", "Trajectory", "World", "compile_scene", "contact_xfrc",
-    "load_scene", "pairs", "rollout", "scaled_model", "step",
+    "DanoBody", "Params", "Primitive", "Robot", "Scene", "SceneError", "Trajectory", "World", "compile_scene",
+    "contact_xfrc", "load_scene", "pairs", "panda", "rollout", "scaled_model", "step",
 ]  # fmt: skip

@@ -87,6 +87,67 @@ class Primitive:
 
 
 @dataclasses.dataclass(frozen=True)
+class Robot:
+    """A fixed-base robot from a URDF or MJCF file, its joints driven by position servos.
+
+    Its collision geometry (primitives, and convex meshes as intersections of half-spaces) touches
+    DANOs through the DANO contact model; MuJoCo's own collisions of the robot are switched off
+    (MJX mesh collisions are far too slow on CPU).
+
+    Attributes:
+        path: a `.urdf` or MJCF `.xml` file (URDF `package://` paths are resolved via `package_dirs`).
+        base_pos, base_quat: pose of the robot's root body in the world.
+        qpos: initial joint positions (in joint order; missing ones are 0).
+        kp, kv: position servo gains per joint (N m/rad, N m s/rad).
+        gravity_compensation: cancel gravity on the robot's links (as a torque-controlled arm would).
+        package_dirs: {package name: folder} for `package://name/...` paths.
+    """
+
+    path: str
+    base_pos: Vec3 = (0.0, 0.0, 0.0)
+    base_quat: Quat = (1.0, 0.0, 0.0, 0.0)
+    qpos: tuple[Number, ...] = ()
+    kp: Number = 300.0
+    kv: Number = 30.0
+    gravity_compensation: bool = True
+    package_dirs: tuple[tuple[str, str], ...] = ()
+
+
+def panda(base_pos: Vec3 = (0.0, 0.0, 0.0), qpos: tuple[Number, ...] = (), **kwargs) -> Robot:
+    """The Franka Panda of `example-robot-data` (URDF, STL collision meshes)."""
+    from importlib.metadata import PackageNotFoundError, distribution
+    from pathlib import Path
+
+    try:
+        root = Path(str(distribution("example-robot-data").locate_file("cmeel.prefix/share/example-robot-data")))
+    except PackageNotFoundError:
+        raise SceneError("the Panda comes from example-robot-data: pip install example-robot-data") from None
+    path = root / "robots" / "panda_description" / "urdf" / "panda.urdf"
+    if not path.is_file():
+        raise SceneError(f"the Panda URDF is not at {path}: pip install example-robot-data")
+    return Robot(str(path), base_pos=base_pos, qpos=qpos, package_dirs=(("example-robot-data", str(root)),), **kwargs)
+
+
+def _robot_spec(robot: Robot) -> mujoco.MjSpec:
+    """Loads the robot with MuJoCo's own compiler: URDF paths resolved, visuals dropped."""
+    import re
+    from pathlib import Path
+
+    path = Path(robot.path)
+    if not path.is_file():
+        raise SceneError(f"robot file {path} not found")
+    text = path.read_text()
+    if path.suffix.lower() == ".urdf":
+        for name, folder in robot.package_dirs:
+            text = text.replace(f"package://{name}", folder)
+        text = re.sub(r'filename="(?!/)([^"]+)"', lambda m: f'filename="{(path.parent / m.group(1)).resolve()}"', text)
+        compiler = '<mujoco><compiler discardvisual="true" balanceinertia="true" fusestatic="false"/></mujoco>'
+        text = re.sub(r"(<robot[^>]*>)", r"\1" + compiler, text, count=1)
+        return mujoco.MjSpec.from_string(text)
+    return mujoco.MjSpec.from_file(str(path))
+
+
+@dataclasses.dataclass(frozen=True)
 class Scene:
     """Everything a simulation needs (see README for the TOML form).
 
@@ -102,6 +163,7 @@ class Scene:
         pair_contact: overrides per pair, keyed by (dano name, other name); the ground is "ground".
         force_mode: "points" applies each sampled point's own force at the point; "centroid" applies
             the total at the overlap centroid chi, as in the paper.
+        robot: an optional robot (see `Robot`, `panda`).
     """
 
     timestep: Number = 0.002
@@ -114,6 +176,7 @@ class Scene:
     contact: ContactParams = dataclasses.field(default_factory=ContactParams)
     pair_contact: tuple[tuple[tuple[str, str], ContactParams], ...] = ()
     force_mode: Literal["points", "centroid"] = "points"
+    robot: Robot | None = None
 
     @property
     def n_steps(self) -> int:
@@ -143,10 +206,26 @@ class DanoState(eqx.Module):
     peak: Float[Array, ""]
 
 
+class LinkGeom(eqx.Module):
+    """A robot collision geom seen by DANOs: MuJoCo geom and body ids, its kind ("box", "sphere",
+    "capsule" or "mesh"), size, and for a mesh its convex hull as planes (normals (k, 3), offsets (k,),
+    geom frame). `radius` bounds the geom around its centre (broad phase)."""
+
+    geom: int = eqx.field(static=True)
+    body: int = eqx.field(static=True)
+    root: int = eqx.field(static=True)
+    kind: str = eqx.field(static=True)
+    size: tuple[float, ...] = eqx.field(static=True)
+    radius: float = eqx.field(static=True)
+    normals: Float[Array, "k 3"] | None = None
+    offsets: Float[Array, " k"] | None = None
+
+
 class World(eqx.Module):
     """The compiled scene: static indices and constant arrays that the jitted step reads."""
 
     danos: tuple[DanoState, ...]
+    links: tuple[LinkGeom, ...]
     dano_body: tuple[int, ...] = eqx.field(static=True)
     dano_qpos: tuple[int, ...] = eqx.field(static=True)
     dano_qvel: tuple[int, ...] = eqx.field(static=True)
@@ -162,6 +241,7 @@ class World(eqx.Module):
     prim_qvel: tuple[int, ...] = eqx.field(static=True)
     prim_mocap: tuple[int, ...] = eqx.field(static=True)
     ground_height: float | None = eqx.field(static=True)
+    link_names: tuple[str, ...] = eqx.field(static=True)
     prim_mass: tuple[float, ...] = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
     dt: float = eqx.field(static=True)
@@ -189,13 +269,19 @@ def pairs(world: World) -> tuple[tuple[int, str, int], ...]:
         if world.ground_height is not None:
             out.append((i, "ground", 0))
         out.extend((i, "primitive", k) for k in range(len(world.prim_kind)))
+        out.extend((i, "link", k) for k in range(len(world.links)))
         out.extend((i, "dano", j) for j in range(i + 1, len(world.danos)))
     return tuple(out)
 
 
 def _pair_name(world: World, pair: tuple[int, str, int]) -> tuple[str, str]:
     i, kind, k = pair
-    other = {"ground": lambda: "ground", "primitive": lambda: world.prim_names[k], "dano": lambda: world.names[k]}
+    other = {
+        "ground": lambda: "ground",
+        "primitive": lambda: world.prim_names[k],
+        "dano": lambda: world.names[k],
+        "link": lambda: world.link_names[k],
+    }
     return world.names[i], other[kind]()
 
 
@@ -265,7 +351,7 @@ def compile_scene(scene: Scene):
         (mj_model, world, params, qpos0, qvel0): the `mujoco.MjModel` (use `mjx.put_model`), the
         static world, default parameters, and the initial state arrays.
     """
-    names = [b.name for b in scene.bodies] + [p.name for p in scene.primitives]
+    names = [b.name for b in scene.bodies] + [p.name for p in scene.primitives]  # robot links are named by it
     if len(set(names)) != len(names) or "ground" in names:
         raise ValueError(f"body names must be unique and not 'ground', got {names}")
     if len(scene.bodies) > 1:
@@ -275,7 +361,8 @@ def compile_scene(scene: Scene):
                 f"DANOs {blind} carry no density grid, so they cannot touch other DANOs: rebuild them with "
                 "`dano build` from a field (reference colliders have none), or pass field= to DanoBody"
             )
-    spec = mujoco.MjSpec()
+    spec = mujoco.MjSpec() if scene.robot is None else _robot_spec(scene.robot)
+    robot_geoms = _prepare_robot(spec, scene.robot) if scene.robot is not None else []
     spec.option.timestep = scene.timestep / scene.substeps
     spec.option.gravity = list(scene.gravity)
     _add_visuals(spec)
@@ -296,6 +383,7 @@ def compile_scene(scene: Scene):
     def jnt(name):
         return model.joint(f"{name}_free").id
 
+    links = tuple(_link_geom(model, g) for g in _robot_geoms(model, robot_geoms))
     danos = tuple(
         DanoState(
             points=jnp.asarray(b.dano.body_points.T),
@@ -311,6 +399,8 @@ def compile_scene(scene: Scene):
     )
     world = World(
         danos=danos,
+        links=links,
+        link_names=tuple(model.body(link.body).name for link in links),
         dano_body=tuple(model.body(b.name).id for b in scene.bodies),
         dano_qpos=tuple(int(model.jnt_qposadr[jnt(b.name)]) for b in scene.bodies),
         dano_qvel=tuple(int(model.jnt_dofadr[jnt(b.name)]) for b in scene.bodies),
@@ -345,7 +435,68 @@ def compile_scene(scene: Scene):
     for p, a, v in zip(scene.primitives, world.prim_qpos, world.prim_qvel, strict=True):
         if p.mode == "free":
             _set_free(model, qpos, qvel, a, v, p.pos, p.quat, p.vel, p.angvel)
+    if scene.robot is not None:
+        hinge = [j for j in range(model.njnt) if model.jnt_type[j] in (2, 3) and _is_robot_joint(model, j, scene)]
+        for j, value in zip(hinge, scene.robot.qpos, strict=False):
+            qpos[model.jnt_qposadr[j]] = value
     return model, world, params, qpos, qvel
+
+
+def _prepare_robot(spec: mujoco.MjSpec, robot: Robot) -> list[str]:
+    """Places the robot and adds a position servo per joint; returns the robot's body names."""
+    root = spec.worldbody.first_body()
+    root.pos, root.quat = list(robot.base_pos), list(robot.base_quat)
+    bodies = [body.name for body in spec.bodies if body.name != "world"]
+    for body in spec.bodies:
+        if robot.gravity_compensation and body.name != "world":
+            body.gravcomp = 1.0
+    for joint in spec.joints:
+        if joint.type in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+            act = spec.add_actuator(name=f"{joint.name}_servo", target=joint.name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+            act.set_to_position(kp=float(robot.kp), kv=float(robot.kv))
+    return bodies
+
+
+def _robot_geoms(model: mujoco.MjModel, bodies: list[str]) -> list[int]:
+    """The robot's geoms, with MuJoCo's own collisions switched off: DANOs see them instead."""
+    ids = {model.body(name).id for name in bodies}
+    geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] in ids]
+    for g in geoms:
+        model.geom_contype[g] = model.geom_conaffinity[g] = 0
+    return geoms
+
+
+def _is_robot_joint(model: mujoco.MjModel, j: int, scene: Scene) -> bool:
+    return not model.joint(j).name.endswith("_free")
+
+
+_LINK_KINDS = {
+    mujoco.mjtGeom.mjGEOM_BOX: "box",
+    mujoco.mjtGeom.mjGEOM_SPHERE: "sphere",
+    mujoco.mjtGeom.mjGEOM_CAPSULE: "capsule",
+    mujoco.mjtGeom.mjGEOM_MESH: "mesh",
+}
+
+
+def _link_geom(model: mujoco.MjModel, g: int) -> LinkGeom:
+    """The DANO-side view of a robot collision geom (convex meshes as half-space intersections)."""
+    from scipy.spatial import ConvexHull
+
+    body = int(model.geom_bodyid[g])
+    kind = _LINK_KINDS.get(mujoco.mjtGeom(model.geom_type[g]))
+    if kind is None:
+        raise SceneError(f"robot geom {g} of type {mujoco.mjtGeom(model.geom_type[g]).name} is not supported")
+    size = tuple(float(v) for v in model.geom_size[g])
+    normals = offsets = None
+    if kind == "mesh":
+        m = model.geom_dataid[g]
+        vert = model.mesh_vert[model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]]
+        planes = np.unique(np.round(ConvexHull(vert).equations, 6), axis=0)  # n . x + c <= 0 inside
+        normals, offsets = jnp.asarray(planes[:, :3]), jnp.asarray(-planes[:, 3])
+        radius = float(np.max(np.linalg.norm(vert, axis=1)))
+    else:
+        radius = float(np.linalg.norm(model.geom_size[g])) + (size[1] if kind == "capsule" else 0.0)
+    return LinkGeom(g, body, int(model.body_rootid[body]), kind, size, radius, normals, offsets)
 
 
 def _set_free(model, qpos, qvel, a, v, pos, quat, vel, angvel) -> None:

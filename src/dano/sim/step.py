@@ -12,11 +12,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 from mujoco import mjx
 
-from dano.contact import Box, Capsule, HalfSpace, Sphere, expected_overlap
+from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere, expected_overlap
 from dano.contact.overlap import outward_normal
 from dano.contact.wrench import ContactParams, sliding_force, spin_torque
-from dano.math import normalize, quat_to_mat
-from dano.sim.scene import DanoState, Params, World, pairs
+from dano.math import normalize, quat_to_mat, safe_norm
+from dano.sim.scene import DanoState, LinkGeom, Params, World, pairs
 
 
 class Frame(eqx.Module):
@@ -159,15 +159,52 @@ def dano_pair_wrench(p: ContactParams, A: Body, B: Body, a: Frame, b: Frame, mod
     return _apply(p, at, psi, normal[:, None], a, b)
 
 
+def link_frame(link: LinkGeom, kin: mjx.Data, d: mjx.Data) -> Frame:
+    """Pose of a robot collision geom (current kinematics) and the velocity of its body.
+
+    MuJoCo's `cvel` (angular; linear at the subtree centre of mass of the body's root) is the one of
+    the last forward pass, i.e. one substep old: positions are exact, velocities lag by one substep.
+    """
+    x = kin.geom_xpos[link.geom]
+    w = d.cvel[link.body, :3]
+    v = d.cvel[link.body, 3:] + jnp.cross(w, x - d.subtree_com[link.root])
+    return Frame(x, kin.geom_xmat[link.geom].reshape(3, 3), v, w)
+
+
+def link_shape(link: LinkGeom, f: Frame):
+    if link.kind == "mesh":
+        return Polytope(f.x, f.R, link.normals, link.offsets)
+    if link.kind == "sphere":
+        return Sphere(f.x, jnp.asarray(link.size[0]))
+    if link.kind == "capsule":
+        axis = f.R[:, 2] * link.size[1]
+        return Capsule(f.x - axis, f.x + axis, jnp.asarray(link.size[0]))
+    return Box(f.x, f.R, jnp.asarray(link.size, dtype=float))
+
+
+def _broad_phase(fn, a: Frame, body: Body, centre: Array, radius: float):
+    """Runs `fn()` only when the DANO's bounding sphere meets one of `radius` around `centre`."""
+    reach = jnp.max(safe_norm(body.points, axis=0)) + radius
+    near = safe_norm(a.x - centre) < reach
+    zero = (jnp.zeros(3), jnp.zeros(3))
+    return jax.lax.cond(near, fn, lambda: zero)
+
+
 def contact_xfrc(
-    world: World, params: Params, d: mjx.Data, mocap_vel: Float[Array, "k 3"] | None = None
+    world: World,
+    params: Params,
+    d: mjx.Data,
+    mocap_vel: Float[Array, "k 3"] | None = None,
+    m: mjx.Model | None = None,
 ) -> Float[Array, "nbody 6"]:
     """Sum of all DANO contact wrenches, as MuJoCo's `xfrc_applied` (nbody, 6).
 
     Args:
         mocap_vel: velocities of the mocap bodies (driven primitives), world, m/s; zero if None.
+        m: the model, needed when the world has a robot (for its link poses).
     """
     xfrc = jnp.zeros_like(d.xfrc_applied)
+    kin = mjx_kinematics(m, d) if world.links else None
     frames = [free_frame(d.qpos, d.qvel, a, v) for a, v in zip(world.dano_qpos, world.dano_qvel, strict=True)]
     bodies = [
         Body(
@@ -189,6 +226,19 @@ def contact_xfrc(
             shape = primitive_shape(world, k, b)
             other = world.prim_body[k] if world.prim_mode[k] == "free" else None
             inv_mass = 1.0 / world.prim_mass[k]
+        elif kind == "link":
+            link = world.links[k]
+            b = link_frame(link, kin, d)
+            shape = link_shape(link, b)
+
+            def touch(shape=shape, a=a, b=b, p=p, body=bodies[i]):
+                return pair_wrench(p, shape, body, a, b, world.force_mode, 0.0, world.dt)
+
+            force, torque = _broad_phase(touch, a, bodies[i], b.x, link.radius)
+            xfrc = xfrc.at[world.dano_body[i]].add(jnp.concatenate([force, torque]))
+            reaction = -(torque + jnp.cross(a.x - kin.xipos[link.body], force))
+            xfrc = xfrc.at[link.body].add(jnp.concatenate([-force, reaction]))
+            continue
         else:
             b = frames[k]
             force, torque = dano_pair_wrench(p, bodies[i], bodies[k], a, b, world.force_mode, world.dt)
@@ -210,6 +260,12 @@ def scaled_model(world: World, params: Params, m: mjx.Model) -> mjx.Model:
     mass_factor = jnp.ones_like(m.body_mass).at[body].set(params.mass_scale)
     inertia_factor = jnp.ones_like(m.body_mass).at[body].set(params.mass_scale * params.inertia_scale)
     return m.replace(body_mass=m.body_mass * mass_factor, body_inertia=m.body_inertia * inertia_factor[:, None])
+
+
+def mjx_kinematics(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """`mjx.kinematics` under standard promotion (see `mjx_step`)."""
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        return mjx.kinematics(m, d)
 
 
 def mjx_step(m: mjx.Model, d: mjx.Data) -> mjx.Data:
@@ -242,7 +298,7 @@ def step(
     def sub(d, i):
         if mocap_target is not None:
             d = d.replace(mocap_pos=start + (i + 1) / world.substeps * (mocap_target - start))
-        xfrc = contact_xfrc(world, params, d, vel)
+        xfrc = contact_xfrc(world, params, d, vel, m)
         d = d.replace(xfrc_applied=xfrc if external is None else xfrc + external)
         return mjx_step(m, d), None
 

@@ -1,0 +1,46 @@
+"""A URDF robot (the Franka Panda of example-robot-data) in a DANO scene."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dano
+from dano.fields import BoxField
+from dano.sim import DanoBody, Scene, panda
+from dano.sim.run import Simulation
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return dano.build_dano(BoxField([0.06, 0.06, 0.06], width=0.002), n_points=2000, mass=0.3, log2_samples=13)
+
+
+def test_panda_loads_with_its_collision_geometry(cube):
+    sim = Simulation.from_scene(Scene(bodies=(DanoBody("cube", cube, pos=(0.5, 0, 0.1)),), robot=panda()))
+    model = sim.model
+    assert model.nu == 9 and model.njnt == 10  # 7 arm + 2 finger joints, and the cube's free joint
+    kinds = [link.kind for link in sim.world.links]
+    assert kinds.count("mesh") == 9 and kinds.count("box") == 8  # 9 STL links, 8 finger boxes
+    assert all(link.normals.shape[0] >= 100 for link in sim.world.links if link.kind == "mesh")
+    assert np.all(model.geom_contype[[link.geom for link in sim.world.links]] == 0)  # DANO model only
+
+
+@pytest.mark.slow
+def test_panda_link_sweeps_and_pushes_the_dano(cube):
+    # The arm's hand sweeps from +y to -y at ~3 cm above the floor (base yaw joint driven by its
+    # position servo) through a cube resting at y = 0.05: the cube must be pushed along -y.
+    z = -float(jnp.min(cube.body_points[:, 2]))
+    q0 = np.array([0.35, 0.7, 0.0, -2.0, 0.0, 2.6, 0.785, 0.02, 0.02])
+    sim = Simulation.from_scene(
+        Scene(bodies=(DanoBody("cube", cube, pos=(0.58, 0.05, z)),), robot=panda(qpos=tuple(q0)))
+    )
+    n = 200
+    targets = np.repeat(q0[None], n, axis=0)
+    targets[:, 0] = np.linspace(0.35, -0.1, n)
+    traj = sim.run(n, ctrl=jnp.asarray(targets))
+    a = sim.world.dano_qpos[0]
+    start, end = np.asarray(traj.qpos[0, a : a + 3]), np.asarray(traj.qpos[-1, a : a + 3])
+    assert end[1] < start[1] - 0.03  # pushed along -y by the sweeping hand
+    assert abs(end[2] - start[2]) < 0.005  # still on the floor
+    # The servo follows its ramp with the PD lag kv * speed / kp = 30 * 1.125 / 300 = 0.11 rad.
+    assert float(traj.qpos[-1, 0]) == pytest.approx(-0.1 + 0.11, abs=0.05)
