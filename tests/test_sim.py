@@ -187,3 +187,85 @@ def test_per_point_forces_resist_spin_without_torsional_friction(cube):
     expected = np.degrees(25 * inertia / (2 * 0.5 * 1.0 * G * 0.3826 * 0.1))
     # The smoothed Coulomb law is weaker than dry friction below ~0.1 m/s, so it turns a bit further.
     assert expected < turned["points"] < 1.6 * expected
+
+
+def test_slope_with_any_ground_normal(cube):
+    """A box on a 20 degree slope (ground normal tilted about y): it stays for mu > tan 20 and
+    slides with a = g (sin - mu cos) for mu < tan 20 (sharp Coulomb law: s = 1000 s/m).
+
+    The acceleration is measured between 0.25 and 0.5 s: in the first ~50 ms the box settles into
+    the penalty layer, with less normal force (so less friction) than at rest.
+    """
+    theta = np.radians(20.0)
+    normal = (float(np.sin(theta)), 0.0, float(np.cos(theta)))
+    quat = (float(np.cos(theta / 2)), 0.0, float(np.sin(theta / 2)), 0.0)  # box face on the slope
+    pos = tuple(float(v) for v in _rest_height(cube) * np.asarray(normal))
+    downhill = np.array([np.cos(theta), 0.0, -np.sin(theta)])
+    for mu in (0.2, 0.6):
+        contact = ContactParams(sliding_friction=mu, coulomb_smoothing=1000.0)
+        scene = Scene(bodies=(DanoBody("c", cube, pos=pos, quat=quat),), ground_normal=normal, contact=contact)
+        traj = Simulation.from_scene(scene).run(250)
+        speed = np.asarray(traj.qvel[:, :3]) @ downhill
+        if mu < np.tan(theta):
+            accel = (speed[250] - speed[125]) / 0.25
+            assert accel == pytest.approx(G * (np.sin(theta) - mu * np.cos(theta)), rel=0.02)
+        else:
+            # It holds, but the smoothed law has no stiction: it creeps at the speed where
+            # mu c(v) = tan(theta), c(v) = (2/pi) atan(s v) v / (eps + v) (the paper's creep).
+            v = np.geomspace(1e-6, 1.0, 200001)
+            creep = v[np.argmax(mu * (2 / np.pi) * np.arctan(1000 * v) * v / (1e-3 + v) > np.tan(theta))]
+            assert abs(speed[-1]) < 1.5 * creep
+
+
+def test_actuated_sphere_pushes_with_a_known_force(cube):
+    z = _rest_height(cube)
+    pusher = Primitive("ee", "sphere", (0.03,), pos=(-0.09, 0.0, z), mode="actuated", mass=1.0)
+    contact = ContactParams(sliding_friction=0.3)
+    sim = Simulation.from_scene(
+        Scene(bodies=(DanoBody("c", cube, pos=(0, 0, z)),), primitives=(pusher,), contact=contact)
+    )
+    assert sim.model.nu == 3
+    n = 300
+    ctrl = jnp.zeros((n, 3)).at[:, 0].set(6.0)  # 6 N along +x; friction holds the 1 kg cube at 2.9 N
+    traj = sim.run(n, ctrl=ctrl)
+    assert float(traj.qpos[-1, 0]) > 0.03
+    a = sim.world.prim_qpos[0]
+    gap = float(traj.qpos[-1, 0]) - (-0.09 + float(traj.qpos[-1, a]))
+    assert gap == pytest.approx(0.03 + 0.05, abs=0.005)  # the sphere stays in contact with the face
+
+
+def test_jacfwd_and_vmap_over_parameters_and_controls(cube):
+    """jacfwd w.r.t. the inertia scale and a control sequence; vmap over friction equals a loop."""
+    z = _rest_height(cube)
+    pusher = Primitive("ee", "sphere", (0.03,), pos=(-0.085, 0.01, z), mode="actuated", mass=1.0)
+    body = DanoBody("c", cube, pos=(0, 0, z))
+    sim = Simulation.from_scene(Scene(substeps=2, bodies=(body,), primitives=(pusher,)))
+    n = 120
+
+    def final(inertia_scale, force, mu):
+        contact = tuple(eqx.tree_at(lambda c: c.sliding_friction, p, mu) for p in sim.params.contact)
+        params = Params(contact=contact, mass_scale=sim.params.mass_scale, inertia_scale=jnp.stack([inertia_scale]))
+        ctrl = jnp.zeros((n, 3)).at[:, 0].set(force)
+        q = rollout(sim.world, params, sim.mjx_model, sim.data, n, ctrl=ctrl).qpos[-1]
+        return jnp.stack([q[0], q[1], q[6]])  # x, y and a quaternion component (the cube yaws)
+
+    x0 = (1.0, 8.0, 0.4)
+    jac = eqx.filter_jit(jax.jacfwd(final, argnums=(0, 1)))(*x0)
+    f = eqx.filter_jit(final)
+    for i, J in enumerate(jac):
+
+        def fi(v, i=i):
+            args = list(x0)
+            args[i] = v
+            return np.asarray(f(*args))
+
+        h = 1e-5 * abs(x0[i])
+        fd = (fi(x0[i] + h) - fi(x0[i] - h)) / (2 * h)
+        # atol: central differences lose ~1e-5 of the largest entry to round-off; the sideways and
+        # yaw entries are ~100x smaller than the push direction's.
+        np.testing.assert_allclose(np.asarray(J), fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
+        assert np.max(np.abs(fd)) > 1e-6
+    mus = jnp.asarray([0.2, 0.5, 0.8])
+    batched = eqx.filter_jit(jax.vmap(lambda mu: final(1.0, 8.0, mu)))(mus)
+    looped = jnp.stack([f(1.0, 8.0, mu) for mu in mus])
+    np.testing.assert_allclose(batched, looped, rtol=1e-10, atol=1e-13)

@@ -101,7 +101,12 @@ def body_poses(traj: Trajectory, sim: Simulation) -> dict[str, np.ndarray]:
     qpos = np.asarray(traj.qpos)
     w = sim.world
     out = {name: qpos[:, a : a + 7] for name, a in zip(w.names, w.dano_qpos, strict=True)}
-    out |= {n: qpos[:, a : a + 7] for n, a in zip(w.prim_names, w.prim_qpos, strict=True) if a >= 0}
+    for name, a, mode, pos, quat in zip(w.prim_names, w.prim_qpos, w.prim_mode, w.prim_pos, w.prim_quat, strict=True):
+        if mode == "free":
+            out[name] = qpos[:, a : a + 7]
+        elif mode == "actuated":
+            fixed = np.broadcast_to(np.asarray(quat, dtype=float), (len(qpos), 4))
+            out[name] = np.concatenate([np.asarray(pos) + qpos[:, a : a + 3], fixed], axis=1)
     return out
 
 

@@ -23,8 +23,9 @@ from dano.types import DANO
 Number = float | int
 Vec3 = tuple[Number, Number, Number]
 Quat = tuple[Number, Number, Number, Number]
+_MOVING = ("free", "actuated")
 PrimitiveKind = Literal["sphere", "capsule", "box"]
-Mode = Literal["static", "free", "mocap"]
+Mode = Literal["static", "free", "mocap", "actuated"]
 
 
 class SceneError(ValueError):
@@ -68,7 +69,11 @@ def _contact_field(body: DanoBody):
 
 @dataclasses.dataclass(frozen=True)
 class Primitive:
-    """A sphere, capsule (along its local z) or box, static, free or driven by mocap.
+    """A sphere, capsule (along its local z) or box: static, free, mocap-driven, or actuated.
+
+    "actuated" is a fully actuated end effector: the body slides along world x, y and z (no
+    rotation) under three force actuators (N), after any robot's actuators in `ctrl`, with its
+    weight compensated (as an arm holding it would).
 
     Attributes:
         size: sphere (radius,); capsule (radius, half_length); box (hx, hy, hz) half extents; m.
@@ -156,7 +161,8 @@ class Scene:
         substeps: MuJoCo steps per frame (the penalty contact is stiff; see `dano.sim.step`).
         duration: s.
         gravity: (3,) m/s^2.
-        ground_height: the plane z = height with normal +z, or None for no ground.
+        ground_height: the ground is the half-space {x : normal . x <= height}, or None for none.
+        ground_normal: (3,) its unit outward normal (default +z: the plane z = height).
         bodies: DANOs.
         primitives: MuJoCo primitives.
         contact: default contact parameters of every pair.
@@ -171,6 +177,7 @@ class Scene:
     duration: Number = 1.0
     gravity: Vec3 = (0.0, 0.0, -9.81)
     ground_height: Number | None = 0.0
+    ground_normal: Vec3 = (0.0, 0.0, 1.0)
     bodies: tuple[DanoBody, ...] = ()
     primitives: tuple[Primitive, ...] = ()
     contact: ContactParams = dataclasses.field(default_factory=ContactParams)
@@ -241,6 +248,7 @@ class World(eqx.Module):
     prim_qvel: tuple[int, ...] = eqx.field(static=True)
     prim_mocap: tuple[int, ...] = eqx.field(static=True)
     ground_height: float | None = eqx.field(static=True)
+    ground_normal: tuple[float, float, float] = eqx.field(static=True)
     link_names: tuple[str, ...] = eqx.field(static=True)
     prim_mass: tuple[float, ...] = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
@@ -326,7 +334,16 @@ def _add_primitive(spec: mujoco.MjSpec, p: Primitive) -> None:
     b = spec.worldbody.add_body(name=p.name, pos=list(p.pos), quat=list(p.quat), mocap=p.mode == "mocap")
     if p.mode == "free":
         b.add_freejoint(name=f"{p.name}_free")
-    b.add_geom(type=_GEOM[p.kind], size=_mj_size(p), mass=p.mass if p.mode == "free" else 0.0)
+    if p.mode == "actuated":
+        b.gravcomp = 1.0
+        R = np.zeros(9)
+        mujoco.mju_quat2Mat(R, np.asarray(p.quat, dtype=float) / np.linalg.norm(p.quat))
+        for k, axis in enumerate("xyz"):
+            local = R.reshape(3, 3).T[:, k]  # world axis k in the body frame
+            b.add_joint(name=f"{p.name}_slide{axis}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=local.tolist())
+            spec.add_actuator(name=f"{p.name}_force{axis}", target=f"{p.name}_slide{axis}",
+                              trntype=mujoco.mjtTrn.mjTRN_JOINT).set_to_motor()  # fmt: skip
+    b.add_geom(type=_GEOM[p.kind], size=_mj_size(p), mass=p.mass if p.mode in ("free", "actuated") else 0.0)
 
 
 def _add_visuals(spec: mujoco.MjSpec) -> None:
@@ -367,11 +384,13 @@ def compile_scene(scene: Scene):
     spec.option.gravity = list(scene.gravity)
     _add_visuals(spec)
     if scene.ground_height is not None:
+        n = np.asarray(_unit(scene.ground_normal))
+        quat = np.zeros(4)
+        mujoco.mju_quatZ2Vec(quat, n)
         spec.worldbody.add_geom(
-            name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], pos=[0, 0, scene.ground_height],
-            material="grid",
+            name="ground", type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], pos=(scene.ground_height * n).tolist(),
+            quat=quat.tolist(), material="grid",
         )  # fmt: skip
-
     for body in scene.bodies:
         _add_dano(spec, body)
     for p in scene.primitives:
@@ -381,6 +400,8 @@ def compile_scene(scene: Scene):
         _set_inertia(model, model.body(body.name).id, np.asarray(body.dano.inertia))
 
     def jnt(name):
+        if f"{name}_slidex" in [model.joint(j).name for j in range(model.njnt)]:
+            return model.joint(f"{name}_slidex").id
         return model.joint(f"{name}_free").id
 
     links = tuple(_link_geom(model, g) for g in _robot_geoms(model, robot_geoms))
@@ -412,13 +433,14 @@ def compile_scene(scene: Scene):
         prim_size=tuple(tuple(float(s) for s in p.size) for p in scene.primitives),
         prim_pos=tuple(tuple(float(s) for s in p.pos) for p in scene.primitives),
         prim_quat=tuple(tuple(float(s) for s in p.quat) for p in scene.primitives),
-        prim_qpos=tuple(int(model.jnt_qposadr[jnt(p.name)]) if p.mode == "free" else -1 for p in scene.primitives),
-        prim_qvel=tuple(int(model.jnt_dofadr[jnt(p.name)]) if p.mode == "free" else -1 for p in scene.primitives),
+        prim_qpos=tuple(int(model.jnt_qposadr[jnt(p.name)]) if p.mode in _MOVING else -1 for p in scene.primitives),
+        prim_qvel=tuple(int(model.jnt_dofadr[jnt(p.name)]) if p.mode in _MOVING else -1 for p in scene.primitives),
         prim_mocap=tuple(
             int(model.body_mocapid[model.body(p.name).id]) if p.mode == "mocap" else -1 for p in scene.primitives
         ),
         ground_height=scene.ground_height,
-        prim_mass=tuple(float(p.mass) if p.mode == "free" else float("inf") for p in scene.primitives),
+        ground_normal=_unit(scene.ground_normal),
+        prim_mass=tuple(float(p.mass) if p.mode in _MOVING else float("inf") for p in scene.primitives),
         substeps=scene.substeps,
         dt=scene.timestep / scene.substeps,
         force_mode=scene.force_mode,
@@ -435,6 +457,8 @@ def compile_scene(scene: Scene):
     for p, a, v in zip(scene.primitives, world.prim_qpos, world.prim_qvel, strict=True):
         if p.mode == "free":
             _set_free(model, qpos, qvel, a, v, p.pos, p.quat, p.vel, p.angvel)
+        elif p.mode == "actuated":
+            qvel[v : v + 3] = p.vel
     if scene.robot is not None:
         hinge = [j for j in range(model.njnt) if model.jnt_type[j] in (2, 3) and _is_robot_joint(model, j, scene)]
         for j, value in zip(hinge, scene.robot.qpos, strict=False):
@@ -497,6 +521,13 @@ def _link_geom(model: mujoco.MjModel, g: int) -> LinkGeom:
     else:
         radius = float(np.linalg.norm(model.geom_size[g])) + (size[1] if kind == "capsule" else 0.0)
     return LinkGeom(g, body, int(model.body_rootid[body]), kind, size, radius, normals, offsets)
+
+
+def _unit(v) -> tuple[float, float, float]:
+    n = np.asarray(v, dtype=float)
+    if n.shape != (3,) or not np.linalg.norm(n) > 0:
+        raise SceneError(f"ground normal must be a non-zero 3-vector, got {v}")
+    return tuple(float(x) for x in n / np.linalg.norm(n))  # type: ignore[return-value]
 
 
 def _set_free(model, qpos, qvel, a, v, pos, quat, vel, angvel) -> None:
@@ -578,13 +609,14 @@ def load_scene(path) -> Scene:
         pair_contact.append(((p["a"], p["b"]), _contact(rest, contact, f"[[pair]] #{i + 1}", path)))
     ground = doc.get("ground")
     if ground is not None:
-        _check_keys(ground, {"height"}, "[ground]", path)
+        _check_keys(ground, {"height", "normal"}, "[ground]", path)
     return Scene(
         timestep=float(sim.get("timestep", 0.002)),
         substeps=int(sim.get("substeps", 4)),
         duration=float(sim.get("duration", 1.0)),
         gravity=tuple(float(g) for g in sim.get("gravity", (0.0, 0.0, -9.81))),  # type: ignore[arg-type]
         ground_height=None if ground is None else float(ground.get("height", 0.0)),
+        ground_normal=tuple(float(v) for v in (ground or {}).get("normal", (0.0, 0.0, 1.0))),  # type: ignore[arg-type]
         bodies=tuple(bodies),
         primitives=tuple(prims),
         contact=contact,

@@ -44,6 +44,11 @@ def primitive_frame(world: World, k: int, d: mjx.Data, mocap_vel: Array | None =
     mode = world.prim_mode[k]
     if mode == "free":
         return free_frame(d.qpos, d.qvel, world.prim_qpos[k], world.prim_qvel[k])
+    if mode == "actuated":  # three slides along world x, y, z: no rotation
+        a, v = world.prim_qpos[k], world.prim_qvel[k]
+        z = jnp.zeros(3)
+        pos = jnp.asarray(world.prim_pos[k], dtype=float) + d.qpos[a : a + 3]
+        return Frame(pos, quat_to_mat(jnp.asarray(world.prim_quat[k], dtype=float)), d.qvel[v : v + 3], z)
     if mode == "mocap":
         i = world.prim_mocap[k]
         z = jnp.zeros(3)
@@ -219,12 +224,13 @@ def contact_xfrc(
     for p, (i, kind, k) in zip(params.contact, pairs(world), strict=True):
         a = frames[i]
         if kind == "ground":
-            b = _static_frame((0.0, 0.0, world.ground_height), (1.0, 0.0, 0.0, 0.0))
-            shape, other, inv_mass = HalfSpace(jnp.asarray([0.0, 0.0, 1.0]), b.x), None, 0.0
+            n = jnp.asarray(world.ground_normal)
+            b = _static_frame(tuple(world.ground_height * v for v in world.ground_normal), (1.0, 0.0, 0.0, 0.0))
+            shape, other, inv_mass = HalfSpace(n, b.x), None, 0.0
         elif kind == "primitive":
             b = primitive_frame(world, k, d, mocap_vel)
             shape = primitive_shape(world, k, b)
-            other = world.prim_body[k] if world.prim_mode[k] == "free" else None
+            other = world.prim_body[k] if world.prim_mode[k] in ("free", "actuated") else None
             inv_mass = 1.0 / world.prim_mass[k]
         elif kind == "link":
             link = world.links[k]
