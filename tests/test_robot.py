@@ -6,7 +6,7 @@ import pytest
 
 import dano
 from dano.fields import BoxField
-from dano.sim import DanoBody, Scene, panda
+from dano.sim import DanoBody, Robot, Scene, panda
 from dano.sim.run import Simulation
 
 
@@ -44,3 +44,21 @@ def test_panda_link_sweeps_and_pushes_the_dano(cube):
     assert abs(end[2] - start[2]) < 0.005  # still on the floor
     # The servo follows its ramp with the PD lag kv * speed / kp = 30 * 1.125 / 300 = 0.11 rad.
     assert float(traj.qpos[-1, 0]) == pytest.approx(-0.1 + 0.11, abs=0.05)
+
+
+def test_mjcf_robot_with_primitive_links(cube, tmp_path):
+    # A one-joint MJCF arm: a capsule along +x at the cube's height, swung about z by its servo
+    # into a cube on its +y side.
+    (tmp_path / "arm.xml").write_text(
+        """<mujoco><worldbody><body name="link" pos="0 0 0.2">
+        <joint name="hinge" type="hinge" axis="0 0 1"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" mass="0.5"/>
+        </body></worldbody></mujoco>"""
+    )
+    z = -float(jnp.min(cube.body_points[:, 2]))
+    robot = Robot(str(tmp_path / "arm.xml"), base_pos=(0.0, 0.0, z))  # the root body's pose
+    sim = Simulation.from_scene(Scene(bodies=(DanoBody("cube", cube, pos=(0.25, 0.08, z)),), robot=robot))
+    assert [link.kind for link in sim.world.links] == ["capsule"] and sim.model.nu == 1
+    traj = sim.run(150, ctrl=jnp.full((150, 1), 1.2))  # swing the capsule towards +y
+    a = sim.world.dano_qpos[0]
+    assert float(traj.qpos[-1, a + 1]) > 0.08 + 0.02  # the cube was swept along +y
