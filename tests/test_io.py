@@ -78,3 +78,16 @@ def test_estimated_normals_agree_with_stored_gradients(dojo):
     estimate /= np.linalg.norm(estimate, axis=1, keepdims=True)
     cos = np.sum(stored * estimate, axis=1)
     assert np.median(cos) > 0.9 and np.mean(cos > 0) > 0.8
+
+
+def test_a_failed_write_leaves_nothing_behind(tmp_path):
+    from dano.io import atomic_write
+
+    target = tmp_path / "out.csv"
+    with pytest.raises(RuntimeError), atomic_write(target) as tmp:
+        tmp.write_text("half a file")
+        raise RuntimeError("crash mid-write")
+    assert list(tmp_path.iterdir()) == []
+    with atomic_write(target) as tmp:
+        tmp.write_text("whole")
+    assert target.read_text() == "whole" and list(tmp_path.iterdir()) == [target]

@@ -101,8 +101,9 @@ def simulate_demos(bunny, out: Path, video: bool = True) -> dict:
         seconds = time.perf_counter() - t0
         final = np.asarray(traj.qpos[-1])
         speed = float(np.linalg.norm(np.asarray(traj.qvel[-1, :3])))
-        print(f"{name}: {scene.n_steps} frames in {seconds:.1f} s (with JIT); first DANO ends at "
-              f"{np.round(final[:3], 3).tolist()} m, speed {speed:.2e} m/s")  # fmt: skip
+        where = ", ".join(f"{v:.3f}" for v in final[:3])
+        print(f"{name}: {scene.n_steps} frames in {seconds:.1f} s (with JIT); first DANO ends at ({where}) m, "
+              f"speed {speed:.2e} m/s")  # fmt: skip
         results[name] = {"final_position_m": final[:3].tolist(), "final_speed_m_s": speed, "seconds": seconds}
         if video:
             print(f"wrote {render_video(sim, traj, out / f'{name}.mp4')}")

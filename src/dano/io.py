@@ -5,10 +5,11 @@
 so a crash never leaves half a file; they are read with `allow_pickle=False`.
 """
 
+import contextlib
 import os
 import tempfile
 import zipfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -30,20 +31,34 @@ def _shapes(n: int) -> dict[str, tuple[int, ...]]:
             "alpha": (), "window": (2,), "mass_stderr": (), "com_stderr": (3,), "inertia_stderr": (3, 3)}  # fmt: skip
 
 
-def atomic_savez(path: str | Path, **arrays) -> None:
-    """`np.savez_compressed` to `path` via a temporary file and an atomic rename."""
+@contextlib.contextmanager
+def atomic_write(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
+    """Yields a temporary path beside `path`; renamed onto `path` if the block succeeds, else removed.
+
+    So a crash or an error never leaves half a file. The file gets the usual permissions (mkstemp
+    would leave 0600).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    os.close(fd)
+    tmp = Path(name)
     try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
-            f.flush()
-            os.fsync(f.fileno())
+        yield tmp
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
         os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def atomic_savez(path: str | Path, **arrays) -> None:
+    """`np.savez_compressed` to `path` via a temporary file and an atomic rename."""
+    with atomic_write(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
+        f.flush()
+        os.fsync(f.fileno())
 
 
 def load_npz(path: str | Path, required: Iterable[str] = ()) -> dict[str, np.ndarray]:

@@ -8,6 +8,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from dano.io import atomic_write  # noqa: E402
 from dano.types import DANO  # noqa: E402
 
 
@@ -36,9 +37,7 @@ def plot_dano(dano: DANO, path: str | Path, title: str = "", n_normals: int = 40
     fig.colorbar(sc, ax=fig.axes, shrink=0.6, label="density")
     fig.suptitle(title or f"DANO: {dano.n_points} surface points, mass {float(dano.mass):.4g} kg, normals in red")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_write(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
-    tmp.replace(path)
     return path

@@ -5,8 +5,6 @@ MuJoCo scene (a subsample, coloured per body). The headless GL backend is chosen
 `MUJOCO_GL` (set to "egl" by `dano.sim` unless the user set it).
 """
 
-import os
-import tempfile
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -15,6 +13,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from dano.errors import DanoError
+from dano.io import atomic_write
 
 _COLOURS = np.array([[0.85, 0.55, 0.35, 1], [0.35, 0.6, 0.85, 1], [0.5, 0.8, 0.4, 1], [0.8, 0.4, 0.7, 1]])
 
@@ -71,18 +70,11 @@ def render_video(
             _add_points(renderer.scene, qpos[t, a : a + 3], qpos[t, a + 3 : a + 7], pts, _COLOURS[i % len(_COLOURS)])
         frames.append(renderer.render().copy())
     renderer.close()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
-    os.close(fd)
-    try:
+    with atomic_write(path, suffix=path.suffix) as tmp:
         if path.suffix.lower() == ".gif":
             iio.imwrite(tmp, np.stack(frames), duration=1000 / fps, loop=0)
         else:
             iio.imwrite(tmp, np.stack(frames), fps=fps, codec="libx264", plugin="pyav")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -7,8 +7,6 @@ bad frame and the likely cause, instead of returning NaNs.
 
 import csv
 import dataclasses
-import os
-import tempfile
 from pathlib import Path
 
 import jax
@@ -17,6 +15,7 @@ import numpy as np
 from mujoco import mjx
 
 from dano.errors import DanoError
+from dano.io import atomic_write
 from dano.sim.scene import Scene, compile_scene
 from dano.sim.step import Trajectory, rollout
 
@@ -112,19 +111,11 @@ def body_poses(traj: Trajectory, sim: Simulation) -> dict[str, np.ndarray]:
 
 def write_csv(path: str | Path, traj: Trajectory, sim: Simulation) -> None:
     """Writes `t,body,x,y,z,qw,qx,qy,qz`, one row per frame per body, atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     poses = body_poses(traj, sim)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            out = csv.writer(f)
-            out.writerow(["t", "body", "x", "y", "z", "qw", "qx", "qy", "qz"])
-            n = next(iter(poses.values())).shape[0] if poses else 0
-            for t in range(n):
-                for name, rows in poses.items():
-                    out.writerow([f"{t * sim.scene.timestep:.6f}", name, *(f"{v:.9g}" for v in rows[t])])
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(["t", "body", "x", "y", "z", "qw", "qx", "qy", "qz"])
+        n = next(iter(poses.values())).shape[0] if poses else 0
+        for t in range(n):
+            for name, rows in poses.items():
+                out.writerow([f"{t * sim.scene.timestep:.6f}", name, *(f"{v:.9g}" for v in rows[t])])
