@@ -6,9 +6,7 @@ import pytest
 
 import dano
 from dano.fields import (
-    BoxField,
     CallableField,
-    CapsuleField,
     GridField,
     NeuralField,
     NeuralFieldConfig,
@@ -23,12 +21,9 @@ from dano.fields import (
     save_neural_field,
 )
 from dano.fields.grid import grid_nodes
+from helpers import analytic_fields
 
-ANALYTIC = [
-    SphereField(0.05, width=0.005),
-    BoxField([0.1, 0.06, 0.03], width=0.003),
-    CapsuleField(0.02, 0.05, width=0.004),
-]
+ANALYTIC = analytic_fields()
 
 
 @pytest.mark.parametrize("field", ANALYTIC, ids=lambda f: type(f).__name__)

@@ -7,13 +7,9 @@ import dano
 from dano.fields import BoxField, CallableField, CapsuleField, SphereField, TransformedField
 from dano.mass import mass_properties, mass_properties_from_points, sample_points
 from dano.math import quat_to_mat
-from helpers import central_difference, rel_err
+from helpers import analytic_fields, central_difference, rel_err
 
-ANALYTIC = [
-    SphereField(0.05, width=0.005),
-    BoxField([0.1, 0.06, 0.03], width=0.003),
-    CapsuleField(0.02, 0.05, width=0.004),
-]
+ANALYTIC = analytic_fields()
 
 
 @pytest.mark.parametrize("field", ANALYTIC, ids=lambda f: type(f).__name__)
