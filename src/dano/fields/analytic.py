@@ -15,6 +15,7 @@ moments in t (Steiner's formula). rho is a polynomial, so Gauss-Legendre on [-w,
 evaluates the t-integral exactly.
 """
 
+import abc
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -57,12 +58,13 @@ class _AnalyticField(AbstractField):
     width: eqx.AbstractVar[Float[Array, ""]]
     peak: eqx.AbstractVar[Float[Array, ""]]
 
+    @abc.abstractmethod
     def signed_distance(self, x: Float[Array, "n 3"]) -> Float[Array, " n"]:
-        raise NotImplementedError  # pragma: no cover  (abstract)
+        """Signed distance to the surface, negative inside, m."""
 
+    @abc.abstractmethod
     def offset_moments(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Volume `(k,)` and second moments int x_i^2 `(k, 3)` of the offset bodies {d <= t}."""
-        raise NotImplementedError  # pragma: no cover  (abstract)
 
     def __call__(self, x: Float[Array, "n 3"]) -> Float[Array, " n"]:
         return self.peak * smootherstep(-self.signed_distance(x) / self.width)

@@ -5,6 +5,7 @@ an axis-aligned box, `bounds`, outside of which it is zero. Fields are `eqx.Modu
 whose array leaves are the parameters (so `jax.grad` reaches them) and whose box is static.
 """
 
+import abc
 from collections.abc import Callable
 
 import equinox as eqx
@@ -34,9 +35,9 @@ class AbstractField(eqx.Module):
 
     bounds: eqx.AbstractVar[Bounds]
 
+    @abc.abstractmethod
     def __call__(self, x: Float[Array, "n 3"]) -> Float[Array, " n"]:
         """Densities at points `x` (object frame, m)."""
-        raise NotImplementedError  # pragma: no cover  (abstract)
 
     @property
     def box_volume(self) -> float:
