@@ -76,7 +76,9 @@ def test_resting_wrench_balances_gravity(cube):
     p = ContactParams()
     o = expected_overlap(HalfSpace(UP, ORIGIN), _world(cube, 0.0495), cube.weights)
     z3 = jnp.zeros(3)
-    w = contact_wrench(p, o.psi, o.chi, o.normal, jnp.asarray([0, 0, 0.0495]), z3, z3, z3, z3)
+    w = contact_wrench(
+        p, o.psi[None], o.chi[:, None], o.normal[:, None], jnp.asarray([0, 0, 0.0495]), z3, z3, z3, z3, z3
+    )
     np.testing.assert_allclose(w.force, [0, 0, float(o.psi) * 3e4], rtol=1e-12)
     np.testing.assert_allclose(w.torque, jnp.cross(o.chi - jnp.asarray([0, 0, 0.0495]), w.force), atol=1e-12)
 
@@ -85,7 +87,8 @@ def test_sliding_friction_opposes_slip_and_saturates():
     p = ContactParams(sliding_friction=jnp.asarray(0.4))
     psi, z3 = jnp.asarray(0.01), jnp.zeros(3)
     for speed in (0.01, 1.0, 100.0):
-        w = contact_wrench(p, psi, z3, UP, jnp.asarray([0, 0, 0.01]), jnp.asarray([speed, 0, 0]), z3, z3, z3)
+        v = jnp.asarray([speed, 0, 0])
+        w = contact_wrench(p, psi[None], z3[:, None], UP[:, None], jnp.asarray([0, 0, 0.01]), v, z3, z3, z3, z3)
         normal = float(w.force[2])
         assert float(w.force[0]) < 0 and float(w.force[1]) == 0
         ratio = -float(w.force[0]) / normal
@@ -105,8 +108,9 @@ def test_wrench_gradients_match_finite_differences(cube):
         pts = _world(cube, z, R)
         o = expected_overlap(ground, pts, cube.weights, p.indicator_width)
         com = jnp.stack([0.0, 0.0, z])
-        w = contact_wrench(p, o.psi, o.chi, o.normal, com, jnp.stack([vx, 0.0, -0.01]), jnp.asarray([0.0, 0.3, 0.0]),
-                           jnp.zeros(3), jnp.zeros(3))  # fmt: skip
+        v, w3 = jnp.stack([vx, 0.0, -0.01]), jnp.asarray([0.0, 0.3, 0.0])
+        z3 = jnp.zeros(3)
+        w = contact_wrench(p, o.psi[None], o.chi[:, None], o.normal[:, None], com, v, w3, z3, z3, z3)
         return jnp.sum(w.force * jnp.asarray([0.3, -0.2, 1.0])) + jnp.sum(w.torque)
 
     x0 = (0.052, 0.5, 0.2, 3e4)

@@ -10,9 +10,9 @@ from dano.contact.overlap import (
     expected_overlap,
     signed_distance,
 )
-from dano.contact.wrench import ContactParams, Wrench, contact_wrench, coulomb_direction, point_wrench
+from dano.contact.wrench import ContactParams, Wrench, contact_wrench, coulomb_direction, sliding_force, spin_torque
 
 __all__ = [
     "Box", "Capsule", "ContactParams", "HalfSpace", "Overlap", "Polytope", "Sphere", "Wrench", "contact_wrench",
-    "coulomb_direction", "expected_overlap", "point_wrench", "signed_distance",
+    "coulomb_direction", "expected_overlap", "signed_distance", "sliding_force", "spin_torque",
 ]  # fmt: skip

@@ -101,41 +101,41 @@ def spin_torque(
     )
 
 
-def point_wrench(
-    p: ContactParams,
-    psi: Float[Array, "..."],
-    normal: Float[Array, "3 ..."],
-    u: Float[Array, "3 ..."],
-    omega: Float[Array, "3 ..."],
-) -> tuple[Float[Array, "3 ..."], Float[Array, "3 ..."]]:
-    """Force and pure torque (eqs. 11-14) of overlaps `psi` with contact-point velocities `u` and
-    relative angular velocities `omega`, world frame; vectors along axis 0 (shape (3,) or (3, n))."""
-    force, mag = sliding_force(p, psi, normal, u)
-    return force, spin_torque(p, mag, normal, omega)
-
-
 def contact_wrench(
     p: ContactParams,
-    psi: Float[Array, ""],
-    chi: Float[Array, " 3"],
-    normal: Float[Array, " 3"],
+    psi: Float[Array, " k"],
+    at: Float[Array, "3 k"],
+    normal: Float[Array, "3 kn"],
     com: Float[Array, " 3"],
     velocity: Float[Array, " 3"],
     angular_velocity: Float[Array, " 3"],
-    other_velocity_at_chi: Float[Array, " 3"],
+    other_com: Float[Array, " 3"],
+    other_velocity: Float[Array, " 3"],
     other_angular_velocity: Float[Array, " 3"],
 ) -> Wrench:
-    """The paper's wrench: everything applied at the overlap centroid chi (eqs. 11-16).
+    """The wrench of eqs. 11-16 on a DANO from overlaps `psi` (kg) at world points `at`.
+
+    With k = 1 and `at` the overlap centroid chi this is the paper's wrench; with the sampled points
+    and their shares of the overlap, the per-point version. `normal` is (3, k), or (3, 1) for one
+    normal shared by all points (then the spin torques add up before the Coulomb law).
 
     Args:
         p: contact parameters.
-        psi, chi, normal: the overlap (see `expected_overlap`).
-        com, velocity, angular_velocity: the DANO's centre of mass (m), its velocity (m/s) and
-            angular velocity (rad/s), world frame.
-        other_velocity_at_chi, other_angular_velocity: the other body's velocity at chi and its
-            angular velocity (zeros for the static ground).
+        psi, at, normal: overlaps (k,), points (3, k) and normals (3, k) or (3, 1), world frame.
+        com, velocity, angular_velocity: the DANO's centre of mass (m), velocity (m/s), angular
+            velocity (rad/s), world frame.
+        other_com, other_velocity, other_angular_velocity: the same for the other body (zeros for
+            the static ground).
+
+    Returns:
+        The force (N) and the torque about `com` (N m), world frame.
     """
-    r = chi - com
-    u = velocity + jnp.cross(angular_velocity, r) - other_velocity_at_chi
-    force, torque = point_wrench(p, psi, normal, u, angular_velocity - other_angular_velocity)
-    return Wrench(force, torque + jnp.cross(r, force))
+    r = at - com[:, None]
+    u = velocity[:, None] + jnp.cross(angular_velocity[:, None], r, axis=0)
+    u = u - other_velocity[:, None] - jnp.cross(other_angular_velocity[:, None], at - other_com[:, None], axis=0)
+    f, magnitude = sliding_force(p, psi, normal, u)
+    if normal.shape[1] == 1:
+        magnitude = jnp.sum(magnitude)[None]
+    tau = spin_torque(p, magnitude, normal, (angular_velocity - other_angular_velocity)[:, None])
+    force = jnp.sum(f, axis=1)
+    return Wrench(force, jnp.sum(tau, axis=1) + jnp.sum(jnp.cross(r, f, axis=0), axis=1))

@@ -379,7 +379,7 @@ def compile_scene(scene: Scene):
                 "`dano build` from a field (reference colliders have none), or pass field= to DanoBody"
             )
     spec = mujoco.MjSpec() if scene.robot is None else _robot_spec(scene.robot)
-    robot_geoms = _prepare_robot(spec, scene.robot) if scene.robot is not None else []
+    robot_bodies = _prepare_robot(spec, scene.robot) if scene.robot is not None else []
     spec.option.timestep = scene.timestep / scene.substeps
     spec.option.gravity = list(scene.gravity)
     _add_visuals(spec)
@@ -399,12 +399,12 @@ def compile_scene(scene: Scene):
     for body in scene.bodies:
         _set_inertia(model, model.body(body.name).id, np.asarray(body.dano.inertia))
 
-    def jnt(name):
-        if f"{name}_slidex" in [model.joint(j).name for j in range(model.njnt)]:
-            return model.joint(f"{name}_slidex").id
-        return model.joint(f"{name}_free").id
+    joints = {model.joint(j).name: j for j in range(model.njnt)}
 
-    links = tuple(_link_geom(model, g) for g in _robot_geoms(model, robot_geoms))
+    def jnt(name):  # the free joint of a body, or the first slide of an actuated primitive
+        return joints.get(f"{name}_slidex", joints.get(f"{name}_free"))
+
+    links = tuple(_link_geom(model, g) for g in _robot_geoms(model, robot_bodies))
     danos = tuple(
         DanoState(
             points=jnp.asarray(b.dano.body_points.T),
@@ -460,8 +460,9 @@ def compile_scene(scene: Scene):
         elif p.mode == "actuated":
             qvel[v : v + 3] = p.vel
     if scene.robot is not None:
-        hinge = [j for j in range(model.njnt) if model.jnt_type[j] in (2, 3) and _is_robot_joint(model, j, scene)]
-        for j, value in zip(hinge, scene.robot.qpos, strict=False):
+        ids = {model.body(name).id for name in robot_bodies}
+        robot_joints = [j for j in range(model.njnt) if model.jnt_bodyid[j] in ids]
+        for j, value in zip(robot_joints, scene.robot.qpos, strict=False):
             qpos[model.jnt_qposadr[j]] = value
     return model, world, params, qpos, qvel
 
@@ -488,10 +489,6 @@ def _robot_geoms(model: mujoco.MjModel, bodies: list[str]) -> list[int]:
     for g in geoms:
         model.geom_contype[g] = model.geom_conaffinity[g] = 0
     return geoms
-
-
-def _is_robot_joint(model: mujoco.MjModel, j: int, scene: Scene) -> bool:
-    return not model.joint(j).name.endswith("_free")
 
 
 _LINK_KINDS = {

@@ -14,7 +14,7 @@ from mujoco import mjx
 
 from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere, expected_overlap
 from dano.contact.overlap import outward_normal
-from dano.contact.wrench import ContactParams, sliding_force, spin_torque
+from dano.contact.wrench import ContactParams, contact_wrench
 from dano.math import normalize, quat_to_mat, safe_norm
 from dano.sim.scene import DanoState, LinkGeom, Params, World, pairs
 
@@ -116,21 +116,9 @@ def pair_wrench(p: ContactParams, shape, body: Body, a: Frame, b: Frame, mode: s
 
 
 def _apply(p: ContactParams, at: Array, psi: Array, normal: Array, a: Frame, b: Frame):
-    """Eqs. 11-16 at points `at` (3, k) with overlaps `psi` (k,) and normals (3, k) or (3, 1).
-
-    Returns the force on `a` (3,) and its torque about a's centre of mass (3,), world frame.
-    """
-    r = at - a.x[:, None]
-    u_a = a.v[:, None] + jnp.cross(a.w[:, None], r, axis=0)
-    u_b = b.v[:, None] + jnp.cross(b.w[:, None], at - b.x[:, None], axis=0)
-    f, magnitude = sliding_force(p, psi, normal, u_a - u_b)
-    if normal.shape[1] == 1:  # one normal: the spin torques of all points add up before the Coulomb law
-        tau = spin_torque(p, jnp.sum(magnitude)[None], normal, (a.w - b.w)[:, None])
-    else:
-        tau = spin_torque(p, magnitude, normal, (a.w - b.w)[:, None])
-    force = jnp.sum(f, axis=1)
-    torque = jnp.sum(tau, axis=1) + jnp.sum(jnp.cross(r, f, axis=0), axis=1)
-    return force, torque
+    """`contact_wrench` on DANO `a` from body `b`: (force, torque about a's centre of mass)."""
+    w = contact_wrench(p, psi, at, normal, a.x, a.v, a.w, b.x, b.v, b.w)
+    return w.force, w.torque
 
 
 def occupancy(state: DanoState, frame: Frame, world_points: Float[Array, "3 k"]) -> Float[Array, " k"]:
