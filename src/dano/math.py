@@ -45,3 +45,47 @@ def quat_to_mat(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3 3"]:
         [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
     ]
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def quat_mul(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
+    """Hamilton product p ⊗ q of quaternions (w, x, y, z): rotate by q, then by p."""
+    p, q = jnp.asarray(p), jnp.asarray(q)
+    pw, pv = p[..., :1], p[..., 1:]
+    qw, qv = q[..., :1], q[..., 1:]
+    w = pw * qw - jnp.sum(pv * qv, axis=-1, keepdims=True)
+    v = pw * qv + qw * pv + jnp.cross(pv, qv)
+    return jnp.concatenate([w, v], axis=-1)
+
+
+def quat_conj(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
+    """The inverse rotation of a unit quaternion (w, -x, -y, -z)."""
+    q = jnp.asarray(q)
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_log(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3"]:
+    """Rotation vector (axis × angle, rad, angle in [0, π]) of a quaternion (w, x, y, z), any norm.
+
+    q and -q give the same vector (the shorter way round). |quat_log(conj(a) ⊗ b)| is the geodesic
+    distance between rotations a and b. Grad-safe at the identity, where it is 2 v / w.
+    """
+    q = normalize(q)
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    s = safe_norm(v)
+    small = s < 1e-6
+    # 2 atan2(s, w) / s, and its Taylor series 2/w (1 - s²/(3 w²)) near s = 0
+    series = 2.0 / w * (1.0 - s * s / (3.0 * w * w))
+    ratio = jnp.where(small, series, 2.0 * jnp.arctan2(s, w) / jnp.where(small, 1.0, s))
+    return v * ratio[..., None]
+
+
+def quat_exp(r: Float[ArrayLike, "... 3"]) -> Float[Array, "... 4"]:
+    """Unit quaternion of a rotation vector r (axis × angle, rad); inverse of `quat_log`. Grad-safe at 0."""
+    r = jnp.asarray(r)
+    angle = safe_norm(r)
+    small = angle < 1e-6
+    half = 0.5 * angle
+    # sin(θ/2)/θ, and its Taylor series 1/2 - θ²/48 near 0
+    sinc = jnp.where(small, 0.5 - angle * angle / 48.0, jnp.sin(half) / jnp.where(small, 1.0, angle))
+    return jnp.concatenate([jnp.cos(half)[..., None], r * sinc[..., None]], axis=-1)

@@ -18,6 +18,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano.contact import ContactParams
+from dano.errors import DanoError
 from dano.types import DANO
 
 Number = float | int
@@ -28,7 +29,7 @@ PrimitiveKind = Literal["sphere", "capsule", "box"]
 Mode = Literal["static", "free", "mocap", "actuated"]
 
 
-class SceneError(ValueError):
+class SceneError(DanoError, ValueError):
     """A scene file that cannot be understood (unknown key, wrong type, missing file)."""
 
 

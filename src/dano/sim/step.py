@@ -316,6 +316,7 @@ def rollout(
     ctrl: Float[Array, "t nu"] | None = None,
     mocap_pos: Float[Array, "t k 3"] | None = None,
     external: Float[Array, "t nbody 6"] | None = None,
+    checkpoint: bool = True,
 ) -> Trajectory:
     """Simulates `n_frames` frames from `d` (a `lax.scan`; jit-, grad- and vmap-able).
 
@@ -324,10 +325,12 @@ def rollout(
         mocap_pos: optional mocap body positions at the end of each frame (driven end effectors);
             they move at constant velocity within a frame.
         external: optional known external wrenches per frame (see `step`).
+        checkpoint: rematerialise each frame in reverse mode (memory: one state per frame) at the
+            cost of a second forward pass; turn off for short rollouts differentiated forward
+            (`jax.linearize` would otherwise recompute every frame for every tangent).
     """
     m = scaled_model(world, params, m)
 
-    @jax.checkpoint
     def frame(d, inputs):
         c, mp, ext = inputs
         if c is not None:
@@ -335,5 +338,7 @@ def rollout(
         d = step(world, params, m, d, mp, ext)
         return d, (d.qpos, d.qvel)
 
+    if checkpoint:
+        frame = jax.checkpoint(frame)
     _, (qpos, qvel) = jax.lax.scan(frame, d, (ctrl, mocap_pos, external), length=n_frames)
     return Trajectory(jnp.concatenate([d.qpos[None], qpos]), jnp.concatenate([d.qvel[None], qvel]))
