@@ -95,6 +95,66 @@ def _simulate(args: argparse.Namespace) -> None:
         print(f"wrote {render_video(sim, traj, args.video)}")
 
 
+def _sysid(args: argparse.Namespace) -> None:
+    from dano.plotting import plot_identification
+    from dano.sysid.pipeline import SysidConfig, identify_files
+
+    fit = tuple(n.strip() for n in args.fit.split(",") if n.strip())
+    if not fit:
+        raise DanoError("--fit names at least one parameter, e.g. --fit friction,mass_scale")
+    config = SysidConfig(
+        fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=_parse_gravity(args.gravity), body=args.body,
+        window=args.window, initial=args.fit_initial, sigma=args.sigma, init=_parse_pairs(args.init, "--init", 1),
+        bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
+    )  # fmt: skip
+    problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
+    if args.plot:
+        plot_identification(problem, result, args.plot)
+    if args.json:
+        print(json.dumps(result.summary()))
+        return
+    print(f"{'parameter':<20} {'estimate':>12} {'stderr':>12}")
+    for name, value in result.params.items():
+        print(f"{name:<20} {value:>12.6g} {result.stderr[name]:>12.3g}")
+    print(
+        f"loss {result.loss[0]:.4g} -> {result.loss[-1]:.4g} in {result.iterations} iterations ({result.message}), "
+        f"{result.seconds:.2f} s; rms error: position {result.rms_position * 1e3:.3g} mm, "
+        f"rotation {np.degrees(result.rms_rotation):.3g} deg; {problem.n_windows} window(s) of {problem.n_frames} "
+        "frames"
+    )
+    if args.plot:
+        print(f"wrote {args.plot}")
+
+
+def _parse_gravity(text: str | None):
+    if text is None or text == "fit":
+        return text
+    try:
+        g = [float(v) for v in text.split(",")]
+    except ValueError:
+        g = []
+    if len(g) != 3:
+        raise DanoError(f"--gravity takes 'fit' or a direction gx,gy,gz in the data's frame, got {text!r}")
+    return g
+
+
+def _parse_pairs(text: str | None, option: str, n: int) -> dict:
+    """`name=value,name=value` (n = 1) or `name=low:high,...` (n = 2)."""
+    out: dict = {}
+    for item in (text or "").split(","):
+        if not item.strip():
+            continue
+        try:
+            name, value = item.split("=")
+            values = [float(v) for v in value.split(":")]
+            assert len(values) == n
+        except (ValueError, AssertionError):
+            form = "name=value" if n == 1 else "name=low:high"
+            raise DanoError(f"{option} takes {form}[,...], got {item!r}") from None
+        out[name.strip()] = values[0] if n == 1 else tuple(values)
+    return out
+
+
 def _demo(args: argparse.Namespace) -> None:
     from dano.demo import run_demo
 
@@ -131,6 +191,26 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--video", help="render to this .mp4 or .gif")
     s.add_argument("--steps", type=int, help="frames to simulate (default: duration / timestep)")
     s.set_defaults(run=_simulate)
+
+    y = sub.add_parser("sysid", help="identify friction, mass scale, ... from observed pose trajectories")
+    y.add_argument("--scene", required=True, help="scene .toml: the object, the table, contact parameters")
+    y.add_argument("--traj", action="append", required=True, help="pose CSV t,x,y,z,qw,qx,qy,qz (repeatable)")
+    y.add_argument("--fit", required=True, help="comma-separated: friction, mass_scale, inertia_scale, contact keys")
+    y.add_argument("--json", action="store_true", help='one JSON object {"params", "stderr", "loss", "seconds"}')
+    y.add_argument("--plot", help="PNG of observed vs fitted trajectories and the loss")
+    y.add_argument("--fps", type=float, help="frame rate of files without a t column")
+    y.add_argument("--scale", type=float, help="metres per unit of the positions in the files")
+    y.add_argument("--size", type=float, help="the object's real longest side, m (DANO and data share units)")
+    y.add_argument("--gravity", help="gravity direction gx,gy,gz in the data's frame, or 'fit' (plane of motion)")
+    y.add_argument("--body", help="the scene body that files without a body column observe")
+    y.add_argument("--window", type=int, help="frame intervals per shooting window (default: whole trajectories)")
+    y.add_argument("--fit-initial", choices=["none", "velocity", "state"], default="none",
+                   help="also fit each window's initial velocity, or pose and velocity (default: none)")  # fmt: skip
+    y.add_argument("--sigma", type=float, default=1e-3, help="tracking noise, m (default 0.001)")
+    y.add_argument("--init", help="initial guesses name=value,... (default: the scene's values)")
+    y.add_argument("--bounds", help="bounds name=low:high,... (default: Table I ranges, widened)")
+    y.add_argument("--max-steps", type=int, default=50)
+    y.set_defaults(run=_sysid)
 
     d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
     d.add_argument("--out", default="dano-demo", help="output folder (default dano-demo)")

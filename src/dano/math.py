@@ -60,7 +60,7 @@ def quat_mul(p: Float[ArrayLike, "... 4"], q: Float[ArrayLike, "... 4"]) -> Floa
 def quat_conj(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 4"]:
     """The inverse rotation of a unit quaternion (w, -x, -y, -z)."""
     q = jnp.asarray(q)
-    return q * jnp.array([1.0, -1.0, -1.0, -1.0])
+    return jnp.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
 
 
 def quat_log(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3"]:

@@ -41,3 +41,51 @@ def plot_dano(dano: DANO, path: str | Path, title: str = "", n_normals: int = 40
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_identification(problem, result, path: str | Path, max_windows: int = 6) -> Path:
+    """Saves a PNG: observed (dots) and fitted (lines) positions of every observed body in the first
+    windows, x, y, z against time, and the loss per iteration (log scale).
+
+    Args:
+        problem: a `dano.sysid.Problem`; result: its `dano.sysid.Identification`.
+    """
+    from dano.sysid import simulate_windows
+
+    qpos = np.asarray(simulate_windows(problem, result.theta, result.delta))  # (n, W + 1, nq)
+    w = problem.windows
+    target, mask = np.asarray(w.target_pos), np.asarray(w.mask) > 0
+    dt = problem.scene.timestep
+    n = min(problem.n_windows, max_windows)
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), gridspec_kw={"width_ratios": [2.2, 1]})
+    ax = axes[0]
+    colours = {"x": "tab:blue", "y": "tab:orange", "z": "tab:green"}
+    for i in range(n):
+        t0 = i * problem.n_frames * dt if problem.recordings == 1 else 0.0
+        t = t0 + dt * np.arange(problem.n_frames + 1)
+        for b, o in enumerate(problem.observed):
+            start = np.asarray(w.qpos[i, o.qpos : o.qpos + 3]) + np.asarray(o.offset)
+            sim = qpos[i, :, o.qpos : o.qpos + 3] + np.asarray(o.offset)
+            obs = np.concatenate([start[None], target[i, :, b]])
+            keep = np.concatenate([[True], mask[i]])
+            for k, axis in enumerate("xyz"):
+                label = f"{axis}" if i == 0 and b == 0 else None
+                ax.plot(t[keep], sim[keep, k], color=colours[axis], lw=1.4, label=label)
+                ax.plot(t[keep], obs[keep, k], ".", color=colours[axis], ms=3.5)
+    ax.set_xlabel("time in window [s]" if problem.recordings > 1 else "time [s]")
+    ax.set_ylabel("position [m]")
+    names = ", ".join(o.name for o in problem.observed)
+    ax.set_title(f"{names}: observed (dots) and fitted (lines), {n} of {problem.n_windows} window(s)")
+    ax.legend(loc="best")
+    ax = axes[1]
+    ax.semilogy(np.arange(len(result.loss)), np.maximum(result.loss, 1e-300), "o-", color="black")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("loss ½Σr² (r in units of σ)")
+    fitted = ", ".join(f"{k} = {v:.4g} ± {result.stderr[k]:.2g}" for k, v in result.params.items())
+    ax.set_title(fitted, fontsize=9)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_write(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    return path

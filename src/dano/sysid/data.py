@@ -191,7 +191,7 @@ def motion_plane_normal(tracks: list[Track], min_ratio: float = 5.0) -> np.ndarr
     A sliding object's centre of mass stays at a constant height over the table, so its positions
     lie on a plane whose normal is the gravity axis. The smallest principal axis of all positions is
     taken; the motion must span the plane: the middle singular value must be `min_ratio` times the
-    smallest.
+    smallest (and not round-off next to the largest: a straight path fixes no plane).
 
     Raises:
         TrackFileError: the motion is too straight or too three-dimensional to fix a plane.
@@ -199,7 +199,7 @@ def motion_plane_normal(tracks: list[Track], min_ratio: float = 5.0) -> np.ndarr
     pos = np.concatenate([tr.pos for tr in tracks])
     centred = pos - pos.mean(axis=0)
     _, s, vt = np.linalg.svd(centred, full_matrices=False)
-    if not s[1] > min_ratio * s[2]:
+    if not (s[1] > min_ratio * s[2] and s[1] > 1e-6 * s[0]):
         raise TrackFileError(
             f"cannot fit gravity from the plane of motion: the positions spread {s[0]:.3g}, {s[1]:.3g}, "
             f"{s[2]:.3g} along their principal axes (a straight or a 3-D path does not fix a plane); "
@@ -228,3 +228,16 @@ def estimate_velocity(track: Track, k: int, half_width: int = 2) -> tuple[np.nda
     basis = np.stack([np.ones_like(tau), tau, tau * tau], axis=1)
     coef, *_ = np.linalg.lstsq(basis, np.concatenate([track.pos[lo:hi], rotvec], axis=1), rcond=None)
     return coef[1, :3], coef[1, 3:]
+
+
+def write_track(path: str | Path, track: Track) -> None:
+    """Writes `t,x,y,z,qw,qx,qy,qz` (and the wrench columns if any), atomically."""
+    from dano.io import atomic_write
+
+    header = ["t", *_POSE] + (list(_WRENCH) if track.wrench is not None else [])
+    columns = [track.t[:, None], track.pos, track.quat] + ([track.wrench] if track.wrench is not None else [])
+    rows = np.concatenate(columns, axis=1)
+    with atomic_write(path, suffix=".csv") as tmp, open(tmp, "w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow(header)
+        out.writerows([[f"{v:.12g}" for v in row] for row in rows])

@@ -122,6 +122,19 @@ def resolve_bounds(names, given: dict | None) -> tuple[np.ndarray, np.ndarray]:
     return lo, hi
 
 
+def initial_guess(problem: Problem, init: dict | None, bounds: dict | None) -> np.ndarray:
+    """θ to start from: `init` where given, else the scene's values; clipped into the bounds."""
+    lo, hi = resolve_bounds(problem.names, bounds)
+    theta = current_values(problem.params, problem.names)
+    for k, name in enumerate(problem.names):
+        if init is not None and name in init:
+            value = float(init[name])
+            if not np.isfinite(value):
+                raise SysidError(f"the initial guess for {name!r} is not finite")
+            theta[k] = value
+    return np.clip(theta, lo, hi)
+
+
 def identify(
     problem: Problem,
     init: dict[str, float] | None = None,
@@ -161,11 +174,7 @@ def identify(
     labels = names if labels is None else tuple(labels)
     p, n, s = len(names), problem.n_windows, problem.n_state
     lo, hi = resolve_bounds(names, bounds)
-    theta = current_values(problem.params, names)
-    for k, name in enumerate(names):
-        if init is not None and name in init:
-            theta[k] = float(init[name])
-    theta = np.clip(theta, lo, hi)
+    theta = initial_guess(problem, init, bounds)
     y = np.concatenate([theta, np.zeros(n * s)])
     s_lo, s_hi = problem.state_bounds()
     y_lo = np.concatenate([lo, s_lo.reshape(-1)])
@@ -187,7 +196,7 @@ def identify(
     if not np.isfinite(point.loss):
         raise SysidError("the loss is not finite at the initial guess: the simulation blows up there")
     history = [point.loss]
-    bar = tqdm(total=max_steps, desc="sysid", disable=not progress, leave=False)
+    bar = tqdm(total=max_steps, desc="sysid", disable=None if progress else True, leave=False)
     tolerances = dict(gtol=gtol, ftol=ftol, rtol=rtol, xtol=xtol)
     loss_at = lambda y: float(loss_fn(*split(y), problem.windows))  # noqa: E731
     message, converged = "", False

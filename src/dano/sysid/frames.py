@@ -1,0 +1,86 @@
+"""From a tracker's frame to the simulator's: metric scale, gravity, and the table.
+
+A pose tracker that renders the object's density field reports poses in the field's own units and
+in the camera's frame. To simulate them we need three facts the images do not give: the metric
+scale (metres per unit: `scale`, or the object's real size), the direction of gravity in the
+camera frame (given, or fitted from the plane the object slides in), and where the table is (put
+under the object, touching it). Rather than rotating the data, the scene is posed in the camera
+frame: gravity along the given direction and the ground plane normal to it.
+"""
+
+import dataclasses
+
+import numpy as np
+
+from dano.build import scale_lengths
+from dano.sim.scene import Scene
+from dano.sysid.data import Track, motion_plane_normal, to_metric
+from dano.sysid.problem import Recording, SysidError
+
+STANDARD_GRAVITY = 9.81
+
+
+def extent(scene: Scene, name: str | None = None) -> float:
+    """The longest side of a DANO's bounding box (its surface points), in the scene's units."""
+    body = _body(scene, name)
+    points = np.asarray(body.dano.points)
+    return float(np.max(points.max(axis=0) - points.min(axis=0)))
+
+
+def _body(scene: Scene, name: str | None):
+    if name is None:
+        if len(scene.bodies) != 1:
+            raise SysidError(f"the scene has {len(scene.bodies)} DANOs: name the one the size refers to")
+        return scene.bodies[0]
+    for b in scene.bodies:
+        if b.name == name:
+            return b
+    raise SysidError(f"the scene has no DANO {name!r}")
+
+
+def scaled(scene: Scene, recordings: list[Recording], scale: float, objects_too: bool) -> tuple[Scene, list]:
+    """Positions in the recordings × scale; with `objects_too`, the scene's DANOs as well (their field
+    shares the tracker's units, e.g. both come from one NeRF)."""
+    if not (np.isfinite(scale) and scale > 0):
+        raise SysidError(f"the scale must be a positive number of metres per unit, got {scale}")
+    recs = [dataclasses.replace(r, tracks={k: to_metric(t, scale) for k, t in r.tracks.items()}) for r in recordings]
+    if objects_too:
+        bodies = tuple(dataclasses.replace(b, dano=scale_lengths(b.dano, scale)) for b in scene.bodies)
+        scene = dataclasses.replace(scene, bodies=bodies)
+    return scene, recs
+
+
+def with_gravity(scene: Scene, recordings: list[Recording], down: np.ndarray) -> Scene:
+    """The scene posed in the data's frame: gravity along `down` (|g| kept, 9.81 if the scene has
+    none) and the ground plane normal to it, touching the observed DANOs from below (the median,
+    over all frames, of their lowest surface point along `down`)."""
+    from scipy.spatial.transform import Rotation
+
+    down = np.asarray(down, dtype=float)
+    if down.shape != (3,) or not np.linalg.norm(down) > 0:
+        raise SysidError(f"the gravity direction must be a non-zero 3-vector, got {down}")
+    down = down / np.linalg.norm(down)
+    up = -down
+    g = float(np.linalg.norm(scene.gravity)) or STANDARD_GRAVITY
+    lows = []
+    for r in recordings:
+        for name, tr in r.tracks.items():
+            body = next((b for b in scene.bodies if b.name == name or (name == "" and len(scene.bodies) == 1)), None)
+            if body is None:
+                continue
+            R = Rotation.from_quat(tr.quat[:, [1, 2, 3, 0]]).as_matrix()  # (T, 3, 3)
+            points = np.asarray(body.dano.body_points)  # (k, 3) about the centre of mass
+            heights = np.einsum("j,tjk,nk->tn", up, R, points) + (tr.pos @ up)[:, None]
+            lows.append(heights.min(axis=1))
+    if not lows:
+        raise SysidError("no observed DANO to put the table under")
+    return dataclasses.replace(
+        scene, gravity=tuple(float(v) for v in g * down), ground_normal=tuple(float(v) for v in up),
+        ground_height=float(np.median(np.concatenate(lows))),
+    )  # fmt: skip
+
+
+def plane_of_motion(recordings: list[Recording]) -> np.ndarray:
+    """The gravity axis (unit, sign undetermined) from the plane the observed bodies move in."""
+    tracks: list[Track] = [t for r in recordings for t in r.tracks.values()]
+    return motion_plane_normal(tracks)

@@ -1,0 +1,112 @@
+"""Files in, identified parameters out: what `dano sysid` runs."""
+
+import dataclasses
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from dano.sim.scene import Scene, load_scene
+from dano.sysid.data import read_tracks
+from dano.sysid.frames import extent, plane_of_motion, scaled, with_gravity
+from dano.sysid.problem import Problem, Recording, SysidError, canonical, make_problem
+from dano.sysid.solve import Identification, identify
+
+
+@dataclasses.dataclass(frozen=True)
+class SysidConfig:
+    """What to fit and how to read the data (the `dano sysid` options).
+
+    Attributes:
+        fit: parameter names as the user writes them (`friction`, `mass_scale`, any contact key).
+        fps: frame rate for files without a `t` column.
+        scale: metres per tracker unit (positions only; the scene's DANOs are taken as metric).
+        size: the object's real longest side in m: the scene's DANO and the positions share the
+            tracker's units and are both scaled by size / (the DANO's longest side).
+        gravity: None (the scene's gravity and ground), a direction (3,) in the data's frame, or
+            "fit" (the normal of the plane of motion, the sign that fits better at the initial guess).
+        body: the scene body that files without a `body` column observe.
+        window: frame intervals per shooting window (None: whole trajectories).
+        initial: "none", "velocity" or "state": initial-state parts fitted per window.
+        sigma: tracking noise, m.
+        init, bounds: initial guesses and (low, high) bounds by name as given in `fit`.
+        max_steps: Levenberg-Marquardt iterations at most.
+    """
+
+    fit: tuple[str, ...]
+    fps: float | None = None
+    scale: float | None = None
+    size: float | None = None
+    gravity: object = None
+    body: str | None = None
+    window: int | None = None
+    initial: str = "none"
+    sigma: float = 1e-3
+    init: dict = dataclasses.field(default_factory=dict)
+    bounds: dict = dataclasses.field(default_factory=dict)
+    max_steps: int = 50
+
+
+def load_recordings(paths: Sequence[str | Path], fps: float | None, body: str | None) -> list[Recording]:
+    """One `Recording` per file; `body` names the body of files without a `body` column."""
+    out = []
+    for path in paths:
+        tracks = read_tracks(path, fps=fps)
+        if body is not None and "" in tracks:
+            tracks = {(body if k == "" else k): v for k, v in tracks.items()}
+        out.append(Recording(tracks))
+    return out
+
+
+def prepare(scene: Scene, recordings: list[Recording], config: SysidConfig) -> tuple[Scene, list[Recording]]:
+    """Applies the metric scale and the gravity direction of `config` (see `dano.sysid.frames`)."""
+    if config.scale is not None and config.size is not None:
+        raise SysidError("give the scale or the object's size, not both")
+    if config.scale is not None:
+        scene, recordings = scaled(scene, recordings, config.scale, objects_too=False)
+    elif config.size is not None:
+        scene, recordings = scaled(scene, recordings, config.size / extent(scene, config.body), objects_too=True)
+    return scene, recordings
+
+
+def identify_files(
+    scene_path: str | Path, traj_paths: Sequence[str | Path], config: SysidConfig, progress: bool = True
+) -> tuple[Problem, Identification]:
+    """Reads the scene and trajectories, sets up Problem (17) and solves it."""
+    if not traj_paths:
+        raise SysidError("give at least one trajectory file")
+    scene = load_scene(scene_path)
+    recordings = load_recordings(traj_paths, config.fps, config.body)
+    scene, recordings = prepare(scene, recordings, config)
+    names = [canonical(n) for n in config.fit]
+    by_name = dict(zip(config.fit, names, strict=True))
+    init = {by_name.get(k, canonical(k)): v for k, v in config.init.items()}
+    bounds = {by_name.get(k, canonical(k)): v for k, v in config.bounds.items()}
+
+    def build(scene):
+        return make_problem(scene, recordings, names, window=config.window, initial=config.initial, sigma=config.sigma)
+
+    if config.gravity is None:
+        problem = build(scene)
+    elif isinstance(config.gravity, str) and config.gravity == "fit":
+        axis = plane_of_motion(recordings)
+        candidates = [build(with_gravity(scene, recordings, sign * axis)) for sign in (1.0, -1.0)]
+        problem = min(candidates, key=lambda p: _initial_loss(p, init, bounds))
+    else:
+        problem = build(with_gravity(scene, recordings, np.asarray(config.gravity, dtype=float)))
+    result = identify(
+        problem, init=init, bounds=bounds, labels=tuple(config.fit), max_steps=config.max_steps, progress=progress
+    )
+    return problem, result
+
+
+def _initial_loss(problem: Problem, init: dict, bounds: dict) -> float:
+    """½Σr² at the initial guess (for choosing the sign of a fitted gravity axis)."""
+    import jax.numpy as jnp
+
+    from dano.sysid.solve import _compiled, initial_guess
+
+    loss_fn, _ = _compiled(problem, "fwd")
+    theta = initial_guess(problem, init, bounds)
+    value = float(loss_fn(jnp.asarray(theta), jnp.zeros((problem.n_windows, problem.n_state)), problem.windows))
+    return value if np.isfinite(value) else np.inf

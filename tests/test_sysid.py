@@ -1,0 +1,179 @@
+"""System identification (paper Problem (17)): Jacobians, recovery of known parameters, bounds, the CLI."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import dano
+from dano.cli import main
+from dano.fields import BoxField
+from dano.sysid import Recording, Track, identify, make_problem, write_track
+from dano.sysid.experiments import at_rate, push_recordings, push_scene, slide_scene, slide_track
+from dano.sysid.pipeline import SysidConfig, identify_files
+from dano.sysid.problem import window_residuals
+from helpers import central_difference
+
+MU = 0.5
+
+
+@pytest.fixture(scope="module")
+def bar():
+    """A 9 x 6 x 3 cm bar of soap, 100 g, 600 surface points."""
+    return dano.build_dano(BoxField(size=(0.09, 0.06, 0.03)), mass=0.1, n_points=600)
+
+
+@pytest.fixture(scope="module")
+def slide(bar):
+    """The slide scene with friction MU and a noise-free 33-frame, 120 Hz track of it."""
+    scene = slide_scene(bar, friction=MU)
+    return scene, slide_track(scene, fps=120.0, n_frames=33)
+
+
+def test_residual_jacobian_matches_central_differences(slide):
+    scene, track = slide
+    short = dataclasses.replace(track, t=track.t[:9], pos=track.pos[:9], quat=track.quat[:9])
+    problem = make_problem(scene, [Recording({"object": short})], ["friction", "sliding_drag"], initial="velocity")
+    w = jax.tree_util.tree_map(lambda x: x[0], problem.windows)
+    theta = jnp.array([0.4, 0.02])
+    delta = jnp.array([0.01, -0.02, 0.5])
+
+    def f(theta, delta):
+        return window_residuals(problem, theta, delta, w).reshape(-1)
+
+    J_theta, J_delta = jax.jacfwd(f, argnums=(0, 1))(theta, delta)
+    for k in range(2):
+        fd = central_difference(lambda h, k=k: f(theta.at[k].add(h), delta), 1e-5)
+        np.testing.assert_allclose(J_theta[:, k], fd, rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(fd))))
+    for k in range(3):
+        fd = central_difference(lambda h, k=k: f(theta, delta.at[k].add(h)), 1e-6)
+        np.testing.assert_allclose(J_delta[:, k], fd, rtol=1e-4, atol=1e-4 * float(jnp.max(jnp.abs(fd))))
+
+
+def test_slide_recovers_friction_exactly_from_noise_free_data(slide):
+    scene, track = slide
+    problem = make_problem(scene, [Recording({"object": track})], ["friction"], initial="velocity")
+    result = identify(problem, init={"sliding_friction": 0.2}, progress=False)
+    assert result.converged
+    assert abs(result.params["sliding_friction"] - MU) < 1e-3 * MU  # same simulator: 0.1 %
+    assert result.loss[-1] < 1e-3 * result.loss[0]
+
+
+def test_slide_with_1mm_noise_is_within_its_standard_error(slide, bar):
+    scene, _ = slide
+    errors = []
+    for seed in (0, 1):
+        track = slide_track(scene, fps=120.0, n_frames=33, noise=1e-3, seed=seed)
+        problem = make_problem(scene, [Recording({"object": track})], ["friction"], initial="velocity")
+        result = identify(problem, init={"sliding_friction": 0.2}, progress=False)
+        error = result.params["sliding_friction"] - MU
+        # 1 mm noise on 33 frames: the standard error is ~1 % of mu; allow 3 of them
+        assert abs(error) < 3 * result.stderr["sliding_friction"] + 1e-3, (seed, result.params, result.stderr)
+        assert 1e-4 < result.stderr["sliding_friction"] < 0.05
+        errors.append(abs(error) / MU)
+    assert max(errors) < 0.05
+
+
+def test_estimates_never_leave_their_bounds(slide):
+    scene, track = slide
+    problem = make_problem(scene, [Recording({"object": track})], ["friction"])
+    high = identify(problem, init={"sliding_friction": 0.1}, bounds={"sliding_friction": (0.0, 0.3)}, progress=False)
+    low = identify(problem, init={"sliding_friction": 0.9}, bounds={"sliding_friction": (0.7, 1.0)}, progress=False)
+    assert high.params["sliding_friction"] == pytest.approx(0.3, abs=1e-12)
+    assert low.params["sliding_friction"] == pytest.approx(0.7, abs=1e-12)
+    assert 0.0 <= high.params["sliding_friction"] <= 0.3
+    assert 0.7 <= low.params["sliding_friction"] <= 1.0
+
+
+def test_multiple_shooting_windows_recover_friction(slide):
+    scene, track = slide
+    problem = make_problem(scene, [Recording({"object": track})], ["friction"], window=8, initial="velocity")
+    assert problem.n_windows == 4
+    result = identify(problem, init={"sliding_friction": 0.9}, progress=False)
+    assert abs(result.params["sliding_friction"] - MU) < 2e-3 * MU
+
+
+def _camera_view(track: Track, R: np.ndarray, offset: np.ndarray, units_per_m: float) -> Track:
+    """The track as a camera would report it: rotated, shifted, in other units."""
+    from dano.sysid.data import rotate, to_metric
+
+    return to_metric(rotate(track, R, offset), units_per_m)
+
+
+def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path, capsys):
+    """The real-data path: poses in a camera frame (tilted, in cm), gravity fitted from the plane of
+    motion, metres from --scale; the JSON is keyed by the names as typed."""
+    scene, track = slide
+    dano.save_dano(tmp_path / "bar.dano.npz", bar)
+    (tmp_path / "scene.toml").write_text(
+        '[sim]\ntimestep = 0.002\nsubsteps = 4\n[ground]\nheight = 0.0\n'
+        '[[body]]\nname = "soap"\ndano = "bar.dano.npz"\n[contact]\nsliding_friction = 0.2\n'
+    )  # fmt: skip
+    R = Rotation.from_euler("xyz", [110.0, 20.0, -35.0], degrees=True).as_matrix()
+    write_track(tmp_path / "soap.csv", _camera_view(track, R, np.array([0.1, -0.3, 0.8]), 100.0))
+    code = main([
+        "sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "soap.csv"), "--fit", "friction",
+        "--scale", "0.01", "--gravity", "fit", "--fit-initial", "velocity", "--json",
+        "--plot", str(tmp_path / "fit.png"),
+    ])  # fmt: skip
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) == {"params", "stderr", "loss", "seconds"}
+    assert set(out["params"]) == {"friction"}
+    assert abs(out["params"]["friction"] - MU) < 2e-3 * MU
+    assert out["loss"][-1] < out["loss"][0]
+    assert (tmp_path / "fit.png").stat().st_size > 10_000
+
+
+def test_cli_sysid_names_a_bad_trajectory_file(tmp_path, capsys, bar):
+    dano.save_dano(tmp_path / "bar.dano.npz", bar)
+    (tmp_path / "scene.toml").write_text('[[body]]\nname = "soap"\ndano = "bar.dano.npz"\n')
+    rows = ["t,x,y,z,qw,qx,qy,qz", "0,0,0,0,1,0,0,0", "0.01,0,0,nan,1,0,0,0", "0.02,0,0,0,1,0,0,0"]
+    (tmp_path / "bad.csv").write_text("\n".join(rows) + "\n")
+    code = main(["sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "bad.csv"), "--fit", "mu"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "bad.csv" in err and "line 3" in err and "NaN" in err
+
+
+def test_unknown_parameter_is_refused(slide):
+    scene, track = slide
+    with pytest.raises(dano.DanoError, match="unknown parameter 'frction'"):
+        make_problem(scene, [Recording({"object": track})], ["frction"])
+
+
+def test_gravity_can_be_given_instead_of_fitted(slide, bar, tmp_path):
+    scene, track = slide
+    dano.save_dano(tmp_path / "bar.dano.npz", bar)
+    (tmp_path / "scene.toml").write_text('[[body]]\nname = "soap"\ndano = "bar.dano.npz"\n[ground]\nheight = 0.0\n')
+    R = Rotation.from_euler("x", 90.0, degrees=True).as_matrix()  # camera y points down
+    write_track(tmp_path / "soap.csv", _camera_view(track, R, np.zeros(3), 1.0))
+    down = R @ np.array([0.0, 0.0, -1.0])
+    config = SysidConfig(fit=("friction",), gravity=list(down), initial="velocity", init={"friction": 0.3})
+    problem, result = identify_files(tmp_path / "scene.toml", [tmp_path / "soap.csv"], config, progress=False)
+    assert np.allclose(problem.scene.gravity, 9.81 * down)
+    assert abs(result.params["friction"] - MU) < 2e-3 * MU
+
+
+@pytest.mark.slow
+def test_push_identifies_mass_scale_and_friction(bunny_field):
+    """Paper Fig. 6b: 10 pushes by a 1 kg sphere under a known force; same simulator: < 0.1 %."""
+    bunny = dano.build_dano(bunny_field, n_points=800, mass=0.5)
+    scene = push_scene(bunny, friction=0.3)
+    truth = {"mass_scale": 1.3, "sliding_friction": 0.35}
+    recordings = push_recordings(scene, truth, n_pushes=10)
+    problem = make_problem(scene, recordings, ["mass_scale", "friction"], initial="velocity", settle=0.0)
+    result = identify(problem, init={"mass_scale": 1.0, "sliding_friction": 0.5}, progress=False)
+    for name, value in truth.items():
+        assert abs(result.theta[problem.names.index(name)] - value) < 1e-3 * value, result.params
+
+
+def test_same_rate_scene_is_not_resampled(slide):
+    scene, track = slide
+    problem = make_problem(scene, [Recording({"object": track})], ["friction"])
+    assert problem.scene.timestep == pytest.approx(1 / 120)
+    assert problem.scene.substeps == at_rate(scene, 120.0).substeps == 17
