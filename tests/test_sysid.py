@@ -105,20 +105,23 @@ def _camera_view(track: Track, R: np.ndarray, offset: np.ndarray, units_per_m: f
 
 
 def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path, capsys):
-    """The real-data path: poses in a camera frame (tilted, in cm), gravity fitted from the plane of
-    motion, metres from --scale; the JSON is keyed by the names as typed."""
+    """The real-data path: two throws seen by a camera (tilted, positions in cm), gravity fitted from
+    the plane they span, metres from --scale; the JSON is keyed by the names as typed."""
     scene, track = slide
+    thrown = dataclasses.replace(scene.bodies[0], vel=(-0.4, 1.5, 0.0))
+    other = slide_track(dataclasses.replace(scene, bodies=(thrown,)))
     dano.save_dano(tmp_path / "bar.dano.npz", bar)
     (tmp_path / "scene.toml").write_text(
         '[sim]\ntimestep = 0.002\nsubsteps = 4\n[ground]\nheight = 0.0\n'
         '[[body]]\nname = "soap"\ndano = "bar.dano.npz"\n[contact]\nsliding_friction = 0.2\n'
     )  # fmt: skip
     R = Rotation.from_euler("xyz", [110.0, 20.0, -35.0], degrees=True).as_matrix()
-    write_track(tmp_path / "soap.csv", _camera_view(track, R, np.array([0.1, -0.3, 0.8]), 100.0))
+    for name, tr in (("a", track), ("b", other)):
+        write_track(tmp_path / f"{name}.csv", _camera_view(tr, R, np.array([0.1, -0.3, 0.8]), 100.0))
     code = main([
-        "sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "soap.csv"), "--fit", "friction",
-        "--scale", "0.01", "--gravity", "fit", "--fit-initial", "velocity", "--json",
-        "--plot", str(tmp_path / "fit.png"),
+        "sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "a.csv"),
+        "--traj", str(tmp_path / "b.csv"), "--fit", "friction", "--scale", "0.01", "--gravity", "fit",
+        "--fit-initial", "velocity", "--json", "--plot", str(tmp_path / "fit.png"),
     ])  # fmt: skip
     assert code == 0
     out = json.loads(capsys.readouterr().out)

@@ -549,8 +549,8 @@ def residuals(
     return jax.vmap(lambda dl, w: window_residuals(problem, theta, dl, w))(delta, windows)
 
 
-def simulate_windows(problem: Problem, theta, delta) -> Float[Array, "n w+1 nq"]:
-    """qpos of every window's simulation (its initial state first), for plots and reports."""
+def simulate_windows(problem: Problem, theta, delta) -> Float[Array, "n f nq"]:
+    """qpos (n, W + 1, nq) of every window's simulation (its initial state first), for plots and reports."""
     params = with_values(problem.params, problem.names, jnp.asarray(theta))
 
     def one(dl, w):
