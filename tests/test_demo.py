@@ -20,3 +20,6 @@ def test_demo_writes_a_bunny_dano_and_its_picture(tmp_path, capsys):
     for name in ("bunny_drop", "fig5_sphere_hits_two_bunnies"):
         assert (tmp_path / f"{name}.mp4").stat().st_size > 10_000
         assert summary[name]["final_speed_m_s"] < 1e-3  # everything comes to rest within 1.5 s
+    assert (tmp_path / "sysid_soap_slide.png").stat().st_size > 10_000
+    fit = summary["sysid_soap_slide"]
+    assert abs(fit["friction"] - fit["true"]) < 3 * fit["stderr"] + 0.01  # 1 mm noise: ~1 % standard error
