@@ -45,16 +45,19 @@ def optimistix_lm(problem, mu0):
         return residuals(problem, theta, delta, args).reshape(-1)
 
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
-    solve = jax.jit(lambda y0, w: optx.least_squares(fn, solver, y0, args=w, max_steps=100, throw=False))
+    def solve(y0, w):
+        sol = optx.least_squares(fn, solver, y0, args=w, max_steps=100, throw=False)
+        return sol.value, sol.stats["num_steps"]
+
+    solve = jax.jit(solve)
     u0 = jnp.log(jnp.array([mu0 / (2.0 - mu0)]))
     y0 = (u0, jnp.zeros((n, s)))
     out = []
     for _ in range(2):
         start = time.perf_counter()
-        sol = jax.block_until_ready(solve(y0, problem.windows))
+        value, steps = jax.block_until_ready(solve(y0, problem.windows))
         seconds = time.perf_counter() - start
-        mu = float(2.0 * jax.nn.sigmoid(sol.value[0][0]))
-        out.append((seconds, int(sol.stats["num_steps"]), mu))
+        out.append((seconds, int(steps), float(2.0 * jax.nn.sigmoid(value[0][0]))))
     return out
 
 
