@@ -534,7 +534,7 @@ def window_residuals(
             pos, rot = q[:, o.qpos : o.qpos + 3], q[:, o.qpos + 3 : o.qpos + 7]
             angle = quat_log(quat_mul(quat_conj(w.target_quat[:, b]), rot)) * o.length
         else:
-            pos = q[:, o.qpos : o.qpos + 3] + jnp.asarray(o.offset)
+            pos = q[:, o.qpos : o.qpos + 3] + jnp.asarray(o.offset)[None, :]
             angle = jnp.zeros_like(pos)
         out.append(jnp.concatenate([pos - w.target_pos[:, b], angle], axis=-1) / problem.sigma)
     r = jnp.stack(out, axis=1)
