@@ -45,6 +45,7 @@ def optimistix_lm(problem, mu0):
         return residuals(problem, theta, delta, args).reshape(-1)
 
     solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-6)
+
     def solve(y0, w):
         sol = optx.least_squares(fn, solver, y0, args=w, max_steps=100, throw=False)
         return sol.value, sol.stats["num_steps"]
