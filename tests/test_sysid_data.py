@@ -164,31 +164,22 @@ def test_missing_column(tmp_path):
         read_tracks(path)
 
 
-def test_nan_in_a_row(tmp_path):
+@pytest.mark.parametrize(
+    ("row", "field", "value", "line", "message"),
+    [
+        (2, 2, "nan", 4, "NaN"),  # a NaN position
+        (4, 0, "inf", 6, "infinite"),  # an infinite time
+        (0, 5, "abc", 2, "not a number"),  # text in a quaternion
+    ],
+    ids=["nan", "infinite-time", "non-numeric"],
+)
+def test_a_bad_value_names_its_line(tmp_path, row, field, value, line, message):
     rows = _rows_text()
-    fields = rows[2].split(",")
-    fields[2] = "nan"
-    rows[2] = ",".join(fields)
-    path = _write(tmp_path / "nan.csv", HEADER, rows)
-    with pytest.raises(TrackFileError, match=_match(path, 4) + ".*NaN"):
-        read_tracks(path)
-
-
-def test_infinite_time(tmp_path):
-    rows = _rows_text()
-    rows[4] = "inf" + rows[4][rows[4].index(",") :]
-    path = _write(tmp_path / "inf.csv", HEADER, rows)
-    with pytest.raises(TrackFileError, match=_match(path, 6) + ".*infinite"):
-        read_tracks(path)
-
-
-def test_non_numeric_value(tmp_path):
-    rows = _rows_text()
-    fields = rows[0].split(",")
-    fields[5] = "abc"
-    rows[0] = ",".join(fields)
-    path = _write(tmp_path / "text.csv", HEADER, rows)
-    with pytest.raises(TrackFileError, match=_match(path, 2) + ".*not a number"):
+    fields = rows[row].split(",")
+    fields[field] = value
+    rows[row] = ",".join(fields)
+    path = _write(tmp_path / "bad.csv", HEADER, rows)
+    with pytest.raises(TrackFileError, match=_match(path, line) + ".*" + message):
         read_tracks(path)
 
 

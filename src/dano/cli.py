@@ -147,10 +147,11 @@ def _parse_pairs(text: str | None, option: str, n: int) -> dict:
         try:
             name, value = item.split("=")
             values = [float(v) for v in value.split(":")]
-            assert len(values) == n
-        except (ValueError, AssertionError):
+        except ValueError:
+            values = []
+        if len(values) != n:
             form = "name=value" if n == 1 else "name=low:high"
-            raise DanoError(f"{option} takes {form}[,...], got {item!r}") from None
+            raise DanoError(f"{option} takes {form}[,...], got {item!r}")
         out[name.strip()] = values[0] if n == 1 else tuple(values)
     return out
 

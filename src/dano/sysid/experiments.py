@@ -20,15 +20,13 @@ from dano.sim.run import Simulation, body_poses, check_trajectory
 from dano.sim.scene import DanoBody, Primitive, Scene, compile_scene
 from dano.sim.step import rollout
 from dano.sysid.data import Track
-from dano.sysid.problem import Recording, with_values
+from dano.sysid.problem import Recording, at_interval, with_values
 from dano.types import DANO
 
 
 def at_rate(scene: Scene, fps: float) -> Scene:
-    """The scene with one frame per camera frame, substeps no longer than the scene's own."""
-    dt = 1.0 / fps
-    substeps = max(1, int(np.ceil(dt / (scene.timestep / scene.substeps) - 1e-9)))
-    return dataclasses.replace(scene, timestep=dt, substeps=substeps)
+    """The scene with one frame per camera frame (see `dano.sysid.problem.at_interval`)."""
+    return at_interval(scene, 1.0 / fps)
 
 
 def resting_height(dano: DANO) -> float:
@@ -92,7 +90,7 @@ def push_recordings(
     Returns one `Recording` per push: tracks of the DANO and the pusher, and the controls.
     """
     rng = np.random.default_rng(seed)
-    settled = _settle(scene)
+    settled = _at_rest(scene)
     scene = at_rate(settled, fps)
     model, world, params, qpos0, qvel0 = compile_scene(scene)
     params = with_values(params, tuple(truth), jnp.asarray(list(truth.values()), dtype=float))
@@ -131,7 +129,7 @@ def push_recordings(
     return out
 
 
-def _settle(scene: Scene, seconds: float = 0.5) -> Scene:
+def _at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
     """The scene with its DANOs moved to where they come to rest after `seconds` (dropped from
     0.1 mm up), so pushes start from a true equilibrium."""
     sim = Simulation.from_scene(dataclasses.replace(scene, duration=seconds))

@@ -53,7 +53,8 @@ def scaled(scene: Scene, recordings: list[Recording], scale: float, objects_too:
 def with_gravity(scene: Scene, recordings: list[Recording], down: np.ndarray) -> Scene:
     """The scene posed in the data's frame: gravity along `down` (|g| kept, 9.81 if the scene has
     none) and the ground plane normal to it, touching the observed DANOs from below (the median,
-    over all frames, of their lowest surface point along `down`)."""
+    over all frames, of their lowest surface point along `down`). Tracks are keyed by the scene's
+    body names (see `named_after_scene`)."""
     from scipy.spatial.transform import Rotation
 
     down = np.asarray(down, dtype=float)
@@ -65,7 +66,7 @@ def with_gravity(scene: Scene, recordings: list[Recording], down: np.ndarray) ->
     lows = []
     for r in recordings:
         for name, tr in r.tracks.items():
-            body = next((b for b in scene.bodies if b.name == name or (name == "" and len(scene.bodies) == 1)), None)
+            body = next((b for b in scene.bodies if b.name == name), None)
             if body is None:
                 continue
             R = Rotation.from_quat(tr.quat[:, [1, 2, 3, 0]]).as_matrix()  # (T, 3, 3)

@@ -9,7 +9,7 @@ import numpy as np
 from dano.sim.scene import Scene, load_scene
 from dano.sysid.data import read_tracks
 from dano.sysid.frames import extent, plane_of_motion, scaled, with_gravity
-from dano.sysid.problem import Problem, Recording, SysidError, canonical, make_problem
+from dano.sysid.problem import Problem, Recording, SysidError, canonical, make_problem, named_after_scene
 from dano.sysid.solve import Identification, identify
 
 
@@ -59,7 +59,7 @@ def load_recordings(paths: Sequence[str | Path], fps: float | None, body: str | 
 
 
 def prepare(scene: Scene, recordings: list[Recording], config: SysidConfig) -> tuple[Scene, list[Recording]]:
-    """Applies the metric scale and the gravity direction of `config` (see `dano.sysid.frames`)."""
+    """Applies the metric scale of `config` (`scale` or `size`, see `dano.sysid.frames`)."""
     if config.scale is not None and config.size is not None:
         raise SysidError("give the scale or the object's size, not both")
     if config.scale is not None:
@@ -76,7 +76,7 @@ def identify_files(
     if not traj_paths:
         raise SysidError("give at least one trajectory file")
     scene = load_scene(scene_path)
-    recordings = load_recordings(traj_paths, config.fps, config.body)
+    recordings = [named_after_scene(scene, r) for r in load_recordings(traj_paths, config.fps, config.body)]
     scene, recordings = prepare(scene, recordings, config)
     names = [canonical(n) for n in config.fit]
     by_name = dict(zip(config.fit, names, strict=True))

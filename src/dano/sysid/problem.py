@@ -60,6 +60,13 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
 """Bounds used when none are given: Table I's ranges, widened; scales over decades."""
 
 
+def at_interval(scene: Scene, dt: float) -> Scene:
+    """The scene with one frame per `dt` s, split into substeps no longer than the scene's own
+    (`scene.timestep / scene.substeps`: the contact's Jacobian needs them short, see README)."""
+    substeps = max(1, int(np.ceil(dt / (scene.timestep / scene.substeps) - 1e-9)))
+    return dataclasses.replace(scene, timestep=dt, substeps=substeps)
+
+
 def canonical(name: str) -> str:
     """The parameter a name given by the user means (`friction` is `sliding_friction`)."""
     key = ALIASES.get(name, name)
@@ -255,9 +262,7 @@ def make_problem(
     for r in recordings:
         if abs(r.dt - dt) > 1e-6 * dt:
             raise SysidError(f"all trajectories must share one frame rate: {1 / r.dt:.6g} vs {1 / dt:.6g} fps")
-    substep = scene.timestep / scene.substeps
-    n_sub = max(1, int(np.ceil(dt / substep - 1e-9)))
-    scene = dataclasses.replace(scene, timestep=dt, substeps=n_sub)
+    scene = at_interval(scene, dt)
     model, world, params, qpos0, qvel0 = compile_scene(scene)
     m = mjx.put_model(model)
     d = mjx.make_data(m)
@@ -266,12 +271,11 @@ def make_problem(
     W = longest if window is None else int(window)
     if W < 1:
         raise SysidError(f"window must be at least 1 frame interval, got {window}")
-    recordings = [_named(scene, r) for r in recordings]
+    recordings = [named_after_scene(scene, r) for r in recordings]
     observed = _observed(scene, world, recordings, rotation_length)
     settle = 3.0 * sigma if settle is None else float(settle)
     windows = _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W, settle, initial)
-    values = current_values(params, names)  # checks the names act on something
-    del values
+    current_values(params, names)  # raises if a name has nothing to act on
     from dano.sim.run import compiler_options
 
     return Problem(
@@ -325,7 +329,7 @@ def _observed(scene: Scene, world: World, recordings, rotation_length) -> tuple[
     return tuple(out)
 
 
-def _named(scene: Scene, r: Recording) -> Recording:
+def named_after_scene(scene: Scene, r: Recording) -> Recording:
     """The recording with a body-less track ("" key) named after the scene's only DANO."""
     if "" not in r.tracks:
         return r
@@ -414,30 +418,29 @@ def _settle(world: World, params: Params, gravity, observed, row: dict, margin: 
     """
     from scipy.spatial.transform import Rotation
 
-    from dano.math import smootherstep
+    from dano.contact.overlap import indicator
 
     n = np.asarray(world.ground_normal)
     g_n = abs(float(np.dot(gravity, n)))
     settled = set()
-    for i, kind, _ in pairs(world):
+    for p, (i, kind, _) in zip(params.contact, pairs(world), strict=True):
         o = next((o for o in observed if o.name == world.names[i]), None)
         if kind != "ground" or o is None or g_n == 0:
             continue
-        p = params.contact[pairs(world).index((i, kind, _))]
         state = world.danos[i]
         points, shares = np.asarray(state.points), np.asarray(state.shares)
         x, q = row["qpos"][o.qpos : o.qpos + 3], row["qpos"][o.qpos + 3 : o.qpos + 7]
         height = n @ (Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix() @ points + x[:, None]) - world.ground_height
-        width = max(float(p.indicator_width), 1e-9)
+        width = float(p.indicator_width)
         target = g_n / float(p.impact_spring)  # ψ / m at rest
 
-        def load(shift, height=height, shares=shares, width=width):
-            return float(np.sum(shares * np.asarray(smootherstep(-(height + shift) / width))))
+        def load(shift, height=height, shares=shares, width=p.indicator_width):
+            return float(np.sum(shares * np.asarray(indicator(jnp.asarray(height + shift), width))))
 
         lowest = float(np.min(height))
         if abs(lowest) > margin:
             continue
-        deep, free = -lowest - margin - width, -lowest + width  # shifts: load(deep) > target, load(free) = 0
+        deep, free = -lowest - margin - width, -lowest + width + 1e-9  # shifts: load(deep) > target, load(free) = 0
         for _ in range(60):
             mid = 0.5 * (deep + free)
             deep, free = (mid, free) if load(mid) > target else (deep, mid)
@@ -520,16 +523,9 @@ def window_residuals(
 
     Padding frames give zeros (a `where`, so a blow-up there cannot leak NaN into the loss).
     """
-    params = with_values(problem.params, problem.names, theta)
-    qpos, qvel = start_state(problem, w, delta)
-    d = problem.data.replace(qpos=qpos, qvel=qvel, mocap_pos=w.mocap0)
-    traj = rollout(
-        problem.world, params, problem.model, d, problem.n_frames, ctrl=w.ctrl, mocap_pos=w.mocap,
-        external=w.external, checkpoint=False,
-    )  # fmt: skip
+    q = simulate_window(problem, theta, delta, w, checkpoint=False)[1:]
     out = []
     for b, o in enumerate(problem.observed):
-        q = traj.qpos[1:]
         if o.kind == "free":
             pos, rot = q[:, o.qpos : o.qpos + 3], q[:, o.qpos + 3 : o.qpos + 7]
             angle = quat_log(quat_mul(quat_conj(w.target_quat[:, b]), rot)) * o.length
@@ -549,16 +545,22 @@ def residuals(
     return jax.vmap(lambda dl, w: window_residuals(problem, theta, dl, w))(delta, windows)
 
 
+def simulate_window(
+    problem: Problem, theta: Float[Array, " p"], delta: Float[Array, " s"], w: Windows, checkpoint: bool = True
+) -> Float[Array, "f nq"]:
+    """qpos (W + 1, nq) of one window's simulation (`w` unbatched), its initial state first."""
+    params = with_values(problem.params, problem.names, theta)
+    qpos, qvel = start_state(problem, w, delta)
+    d = problem.data.replace(qpos=qpos, qvel=qvel, mocap_pos=w.mocap0)
+    return rollout(
+        problem.world, params, problem.model, d, problem.n_frames, ctrl=w.ctrl, mocap_pos=w.mocap,
+        external=w.external, checkpoint=checkpoint,
+    ).qpos  # fmt: skip
+
+
 def simulate_windows(problem: Problem, theta, delta) -> Float[Array, "n f nq"]:
     """qpos (n, W + 1, nq) of every window's simulation (its initial state first), for plots and reports."""
-    params = with_values(problem.params, problem.names, jnp.asarray(theta))
-
-    def one(dl, w):
-        qpos, qvel = start_state(problem, w, dl)
-        d = problem.data.replace(qpos=qpos, qvel=qvel, mocap_pos=w.mocap0)
-        return rollout(
-            problem.world, params, problem.model, d, problem.n_frames, ctrl=w.ctrl, mocap_pos=w.mocap,
-            external=w.external,
-        ).qpos  # fmt: skip
-
-    return jax.jit(jax.vmap(one), compiler_options=problem.compiler_options)(jnp.asarray(delta), problem.windows)
+    if "simulate" not in problem.cache:
+        batched = jax.vmap(lambda th, dl, w: simulate_window(problem, th, dl, w), in_axes=(None, 0, 0))
+        problem.cache["simulate"] = jax.jit(batched, compiler_options=problem.compiler_options)
+    return problem.cache["simulate"](jnp.asarray(theta), jnp.asarray(delta), problem.windows)
