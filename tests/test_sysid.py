@@ -180,3 +180,9 @@ def test_same_rate_scene_is_not_resampled(slide):
     problem = make_problem(scene, [Recording({"object": track})], ["friction"])
     assert problem.scene.timestep == pytest.approx(1 / 120)
     assert problem.scene.substeps == at_rate(scene, 120.0).substeps == 17
+
+
+def test_float32_is_refused_with_a_named_error(slide):
+    scene, track = slide
+    with jax.enable_x64(False), pytest.raises(dano.DanoError, match="float64"):
+        make_problem(scene, [Recording({"object": track})], ["friction"])

@@ -223,6 +223,11 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import jax
+
+    # Float64 throughout, as the tests run: identification needs it (in float32 the Gauss-Newton
+    # Hessian of a stiff contact overflows), and one precision keeps every command's numbers alike.
+    jax.config.update("jax_enable_x64", True)
     args = parser().parse_args(argv)
     try:
         args.run(args)

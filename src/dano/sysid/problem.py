@@ -251,6 +251,11 @@ def make_problem(
         SysidError: unknown names, no observed body, mismatched frame rates, or windows that would
             start from a state the data does not give.
     """
+    if not jax.config.jax_enable_x64:
+        raise SysidError(
+            "system identification needs float64 (the Jacobians of stiff contact overflow float32): call "
+            "jax.config.update('jax_enable_x64', True) first (the dano command does)"
+        )
     names = tuple(canonical(n) for n in fit)
     if len(set(names)) != len(names):
         raise SysidError(f"a parameter is named twice in {list(fit)}")
