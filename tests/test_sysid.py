@@ -13,7 +13,14 @@ import dano
 from dano.cli import main
 from dano.fields import BoxField
 from dano.sysid import Recording, Track, identify, make_problem, write_track
-from dano.sysid.experiments import at_rate, push_recordings, push_scene, slide_scene, slide_track
+from dano.sysid.experiments import (
+    at_rate,
+    mesh_push_recordings,
+    push_recordings,
+    push_scene,
+    slide_scene,
+    slide_track,
+)
 from dano.sysid.pipeline import SysidConfig, identify_files
 from dano.sysid.problem import window_residuals
 from helpers import central_difference
@@ -173,6 +180,27 @@ def test_push_identifies_mass_scale_and_friction(bunny_field):
     result = identify(problem, init={"mass_scale": 1.0, "sliding_friction": 0.5}, progress=False)
     for name, value in truth.items():
         assert abs(result.theta[problem.names.index(name)] - value) < 1e-3 * value, result.params
+
+
+@pytest.mark.slow
+def test_pushes_replayed_by_mujoco_c_on_the_mesh_move_the_object_alike(tmp_path):
+    """The other engine's data (the push experiment's MuJoCo C path): same starts and forces, an
+    8 cm cube as CoACD pieces under MuJoCo's own contacts vs the cube's DANO under ours."""
+    import trimesh
+
+    cube = dano.build_dano(BoxField(size=(0.08, 0.08, 0.08)), mass=0.3, n_points=400)
+    scene = push_scene(cube, friction=0.3)
+    mesh = trimesh.creation.box(extents=(0.08, 0.08, 0.08))
+    theirs = mesh_push_recordings(scene, mesh, mass=0.3, friction=0.3, n_pushes=4, n_frames=31, seed=1)
+    ours = push_recordings(scene, {"sliding_friction": 0.3}, n_pushes=4, n_frames=31, seed=1)
+    for a, b in zip(theirs, ours, strict=True):
+        np.testing.assert_array_equal(a.ctrl, b.ctrl)
+        np.testing.assert_allclose(a.tracks["pusher"].pos[0], b.tracks["pusher"].pos[0], atol=1e-9)
+        moved_a = np.linalg.norm(a.tracks["object"].pos[-1] - a.tracks["object"].pos[0])
+        moved_b = np.linalg.norm(b.tracks["object"].pos[-1] - b.tracks["object"].pos[0])
+        assert moved_b > 0.01  # every push reaches the cube
+        assert moved_a == pytest.approx(moved_b, rel=0.25)
+        assert np.linalg.norm(a.tracks["object"].pos[-1] - b.tracks["object"].pos[-1]) < 0.2 * moved_b + 5e-3
 
 
 def test_same_rate_scene_is_not_resampled(slide):

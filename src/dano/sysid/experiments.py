@@ -12,7 +12,9 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
+import trimesh
 from mujoco import mjx
 
 from dano.contact import ContactParams
@@ -89,44 +91,142 @@ def push_recordings(
 
     Returns one `Recording` per push: tracks of the DANO and the pusher, and the controls.
     """
-    rng = np.random.default_rng(seed)
-    settled = _at_rest(scene)
-    scene = at_rate(settled, fps)
+    plan = push_plan(scene, n_pushes, fps, n_frames, force, seed)
+    scene = plan.scene
     model, world, params, qpos0, qvel0 = compile_scene(scene)
     params = with_values(params, tuple(truth), jnp.asarray(list(truth.values()), dtype=float))
     m = mjx.put_model(model)
-    home = np.asarray(scene.primitives[0].pos)
-    centre = np.asarray(scene.bodies[0].pos)
     a = world.prim_qpos[0]
-    starts, ctrls = [], []
-    for _ in range(n_pushes):
-        bearing = np.pi + rng.uniform(-np.pi / 3, np.pi / 3)
-        distance = np.linalg.norm(home[:2] - centre[:2])
-        where = centre + distance * np.array([np.cos(bearing), np.sin(bearing), 0.0])
-        where[2] = home[2]
-        qpos = qpos0.copy()
-        qpos[a : a + 3] = where - home
-        direction = (centre - where) * np.array([1.0, 1.0, 0.0])
-        direction /= np.linalg.norm(direction)
-        ctrl = np.zeros((n_frames - 1, model.nu))
-        ctrl[: (n_frames - 1) // 2, -3:] = rng.uniform(*force) * direction
-        starts.append(qpos)
-        ctrls.append(ctrl)
+    home = np.asarray(scene.primitives[0].pos)
+    starts = np.tile(qpos0, (n_pushes, 1))
+    starts[:, a : a + 3] = plan.starts - home
 
     def one(qpos, ctrl):
         d = mjx.make_data(m).replace(qpos=qpos, qvel=jnp.asarray(qvel0))
         return rollout(world, params, m, d, n_frames - 1, ctrl=ctrl).qpos
 
-    qpos = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(np.stack(starts)), jnp.asarray(np.stack(ctrls))))
+    qpos = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(starts), jnp.asarray(plan.ctrls)))
+    d = world.dano_qpos[0]
+    return [
+        _push_recording(q[:, d : d + 7], q[:, a : a + 3] + home, ctrl, fps, "synthetic push")
+        for q, ctrl in zip(qpos, plan.ctrls, strict=True)
+    ]
+
+
+@dataclasses.dataclass(frozen=True)
+class PushPlan:
+    """The pushes of an experiment: the scene at the camera's rate with the DANO at rest, the
+    pusher's start positions (n, 3) and the actuator forces (n, T - 1, 3), N."""
+
+    scene: Scene
+    starts: np.ndarray
+    ctrls: np.ndarray
+
+
+def push_plan(
+    scene: Scene, n_pushes: int, fps: float, n_frames: int, force: tuple[float, float], seed: int
+) -> PushPlan:
+    """Random pushes (see `push_recordings`), the same for every engine that replays them."""
+    rng = np.random.default_rng(seed)
+    scene = at_rate(_at_rest(scene), fps)
+    home = np.asarray(scene.primitives[0].pos)
+    centre = np.asarray(scene.bodies[0].pos)
+    distance = np.linalg.norm(home[:2] - centre[:2])
+    starts, ctrls = [], []
+    for _ in range(n_pushes):
+        bearing = np.pi + rng.uniform(-np.pi / 3, np.pi / 3)
+        where = centre + distance * np.array([np.cos(bearing), np.sin(bearing), 0.0])
+        where[2] = home[2]
+        direction = (centre - where) * np.array([1.0, 1.0, 0.0])
+        direction /= np.linalg.norm(direction)
+        ctrl = np.zeros((n_frames - 1, 3))
+        ctrl[: (n_frames - 1) // 2] = rng.uniform(*force) * direction
+        starts.append(where)
+        ctrls.append(ctrl)
+    return PushPlan(scene, np.stack(starts), np.stack(ctrls))
+
+
+def _push_recording(obj: np.ndarray, pusher: np.ndarray, ctrl: np.ndarray, fps: float, source: str) -> Recording:
+    """A push's recording from the DANO's poses (T, 7) and the pusher's positions (T, 3)."""
+    fixed = np.tile([1.0, 0.0, 0.0, 0.0], (len(pusher), 1))
+    return Recording(
+        {"object": Track.from_poses(obj, 1.0 / fps, source=source),
+         PUSHER: Track.from_poses(np.concatenate([pusher, fixed], axis=1), 1.0 / fps, source=source)},
+        ctrl=ctrl,
+    )  # fmt: skip
+
+
+def mesh_push_recordings(
+    scene: Scene,
+    mesh: trimesh.Trimesh,
+    mass: float,
+    friction: float,
+    n_pushes: int = 10,
+    fps: float = 100.0,
+    n_frames: int = 41,
+    force: tuple[float, float] = (2.0, 5.0),
+    seed: int = 0,
+    timestep: float = 0.001,
+    max_hulls: int = 16,
+) -> list[Recording]:
+    """The pushes of `push_recordings` (same seed, same starts and forces) simulated by another
+    engine: MuJoCo C with the object's true shape, `mesh` (in the frame of the field the scene's
+    DANO was built from), as a CoACD convex decomposition of `mass` kg (inertia from the pieces)
+    and MuJoCo's own soft contacts with `friction` on every geom.
+
+    The object is first left to settle on the table for 0.5 s; its tracked pose is that of the
+    frame at the DANO's centre of mass, as a tracker would report a fixed frame on the object.
+    """
+    from dano.baselines.mesh import convex_decomposition
+
+    plan = push_plan(scene, n_pushes, fps, n_frames, force, seed)
+    dano, pusher = plan.scene.bodies[0], plan.scene.primitives[0]
+    pieces = [p.apply_translation(-np.asarray(dano.dano.com)) for p in convex_decomposition(mesh, max_hulls=max_hulls)]
+    model = _mesh_push_model(pieces, mass, friction, dano, pusher, timestep)
+    data = mujoco.MjData(model)
+    per_frame = max(1, round(1.0 / (fps * timestep)))
+    mujoco.mj_forward(model, data)
+    for _ in range(round(0.5 / timestep)):
+        mujoco.mj_step(model, data)
+    rest_qpos = data.qpos.copy()
+    obj_body, pusher_body = model.body("object").id, model.body(PUSHER).id
     out = []
-    for q, ctrl in zip(qpos, ctrls, strict=True):
-        d = world.dano_qpos[0]
-        obj = Track.from_poses(q[:, d : d + 7], 1.0 / fps, source="synthetic push")
-        pusher_pos = q[:, a : a + 3] + home
-        fixed = np.tile([1.0, 0.0, 0.0, 0.0], (len(q), 1))
-        pusher = Track.from_poses(np.concatenate([pusher_pos, fixed], axis=1), 1.0 / fps, source="synthetic push")
-        out.append(Recording({"object": obj, PUSHER: pusher}, ctrl=ctrl))
+    for where, ctrl in zip(plan.starts, plan.ctrls, strict=True):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:] = rest_qpos
+        data.qpos[7:10] = where - np.asarray(pusher.pos)
+        mujoco.mj_forward(model, data)
+        obj, tip = [], []
+        for k in range(n_frames):
+            obj.append(np.concatenate([data.xpos[obj_body], data.xquat[obj_body]]))
+            tip.append(data.xpos[pusher_body].copy())
+            if k < n_frames - 1:
+                data.ctrl[:] = ctrl[k]
+                for _ in range(per_frame):
+                    mujoco.mj_step(model, data)
+        out.append(_push_recording(np.stack(obj), np.stack(tip), ctrl, fps, "MuJoCo C, CoACD mesh"))
     return out
+
+
+def _mesh_push_model(pieces, mass: float, friction: float, dano: DanoBody, pusher: Primitive, timestep: float):
+    """MuJoCo C model of a push: ground, the object as convex pieces, the actuated sphere."""
+    spec = mujoco.MjSpec()
+    spec.option.timestep = timestep
+    mu = [friction, 0.005, 0.0001]
+    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=mu)
+    body = spec.worldbody.add_body(name="object", pos=list(dano.pos), quat=list(dano.quat))
+    body.add_freejoint()
+    density = mass / sum(p.volume for p in pieces)
+    for i, p in enumerate(pieces):
+        spec.add_mesh(name=f"piece{i}", uservert=p.vertices.ravel().tolist(), userface=p.faces.ravel().tolist())
+        body.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"piece{i}", density=density, friction=mu)
+    tip = spec.worldbody.add_body(name=PUSHER, pos=list(pusher.pos))
+    tip.gravcomp = 1.0
+    for axis, vector in zip("xyz", np.eye(3), strict=True):
+        tip.add_joint(name=f"slide{axis}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=vector.tolist())
+        spec.add_actuator(name=f"force{axis}", target=f"slide{axis}", trntype=mujoco.mjtTrn.mjTRN_JOINT).set_to_motor()
+    tip.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[pusher.size[0], 0, 0], mass=pusher.mass, friction=mu)
+    return spec.compile()
 
 
 def _at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
