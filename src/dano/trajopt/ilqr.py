@@ -1,0 +1,359 @@
+"""Constrained iLQR: augmented-Lagrangian iLQR in the style of ALTRO (Howell, Jackson & Manchester 2019).
+
+Problem, for a horizon of T steps from a given x₀:
+
+    minimise    Σₜ ℓ(xₜ, uₜ, t) + ℓ_T(x_T)
+    subject to  xₜ₊₁ = f(xₜ, uₜ, t)
+                c(xₜ, uₜ, t) ≤ 0        t = 0 … T−1   (state and input limits)
+                h(x_T) = 0                              (goal)
+
+The outer loop adds to the cost the augmented-Lagrangian terms λᵀc + ½ ρ‖c‖² (inequalities, only
+where active: c > 0 or λ > 0) and νᵀh + ½ ρ‖h‖², solves that by iLQR, then updates the multipliers
+λ ← max(0, λ + ρ c), ν ← ν + ρ h and raises ρ until the largest violation is below the tolerance.
+
+The inner iLQR: the dynamics linearised by `jax.jacfwd` (vmapped over time), the augmented cost
+expanded to second order by `jax.hessian`; a Riccati backward pass with Levenberg regularisation of
+Q_uu (raised when Q_uu is not positive definite or a step fails, lowered after a good one); a
+backtracking line search on the closed-loop rollout accepting a step when the cost falls by a
+fraction of the quadratic model's prediction.
+
+Every piece is jitted once per problem; the loops run in Python so a progress bar can follow them.
+"""
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from dano.errors import DanoError
+
+
+class TrajoptError(DanoError):
+    """A trajectory optimisation problem that cannot be set up as asked."""
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimalControlProblem:
+    """x' = f(x, u, t) with costs and constraints (see the module docstring); all pure JAX functions.
+
+    Attributes:
+        dynamics: f(x (n,), u (m,), t) -> (n,).
+        cost: ℓ(x, u, t) -> scalar, t = 0 … T-1.
+        terminal_cost: ℓ_T(x) -> scalar.
+        horizon: T.
+        constraints: c(x, u, t) -> (p,), feasible where ≤ 0; or None.
+        terminal_constraints: h(x) -> (q,), feasible where = 0; or None.
+    """
+
+    dynamics: Callable
+    cost: Callable
+    terminal_cost: Callable
+    horizon: int
+    constraints: Callable | None = None
+    terminal_constraints: Callable | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """Solver settings.
+
+    Attributes:
+        max_iterations: iLQR iterations in all (inner iterations summed over outer ones).
+        max_outer: augmented-Lagrangian updates.
+        constraint_tol: largest constraint violation accepted at a solution.
+        cost_tol: an inner solve stops when the cost falls by less than this fraction.
+        gradient_tol: ... or when the feedforward step is this small relative to the controls.
+        penalty: initial ρ; `penalty_scale` multiplies it at each update, up to `penalty_max`.
+        regularization: initial Levenberg term on Q_uu, kept in [reg_min, reg_max].
+        line_search: step sizes tried, largest first; `armijo`: accepted fraction of the predicted decrease.
+    """
+
+    max_iterations: int = 300
+    max_outer: int = 12
+    constraint_tol: float = 1e-4
+    cost_tol: float = 1e-4
+    gradient_tol: float = 1e-5
+    penalty: float = 10.0
+    penalty_scale: float = 10.0
+    penalty_max: float = 1e9
+    regularization: float = 1e-6
+    reg_min: float = 1e-9
+    reg_max: float = 1e8
+    line_search: tuple[float, ...] = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.015625, 0.0078125)
+    armijo: float = 1e-4
+
+
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """What `solve` found.
+
+    Attributes:
+        states: (T+1, n); controls: (T, m).
+        cost: the objective ∑ℓ + ℓ_T at the solution (without the Lagrangian terms).
+        max_violation: the largest constraint violation (inequality excess or |h|).
+        converged: constraints within tolerance and the last inner solve converged.
+        message: why it stopped, in words.
+        iterations: iLQR iterations in all; outer: multiplier updates.
+        seconds: wall time (JIT compilation included).
+        history: per iteration (cost, max violation).
+        multipliers: λ (T, p) and ν (q,) at the end.
+    """
+
+    states: np.ndarray
+    controls: np.ndarray
+    cost: float
+    max_violation: float
+    converged: bool
+    message: str
+    iterations: int
+    outer: int
+    seconds: float
+    history: list[tuple[float, float]]
+    multipliers: tuple[np.ndarray, np.ndarray]
+
+
+def rollout(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: Float[Array, "T m"]) -> Array:
+    """States (T+1, n) of the open-loop controls from x0."""
+
+    def step(x, ut):
+        u, t = ut
+        x_next = problem.dynamics(x, u, t)
+        return x_next, x_next
+
+    _, xs = jax.lax.scan(step, x0, (controls, jnp.arange(problem.horizon)))
+    return jnp.concatenate([x0[None], xs], axis=0)
+
+
+def _zeros_like_constraints(fn, x, u, t) -> int:
+    return 0 if fn is None else int(jax.eval_shape(fn, x, u, t).shape[0])
+
+
+class _Compiled:
+    """The jitted pieces of one problem (built once; shapes fixed by x0 and the controls)."""
+
+    def __init__(self, problem: OptimalControlProblem, n: int, m: int):
+        T = problem.horizon
+        self.p = _zeros_like_constraints(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
+        self.q = 0 if problem.terminal_constraints is None else int(
+            jax.eval_shape(problem.terminal_constraints, jnp.zeros(n)).shape[0]
+        )  # fmt: skip
+        ts = jnp.arange(T)
+        c_fn = problem.constraints if self.p else (lambda x, u, t: jnp.zeros(0))
+        h_fn = problem.terminal_constraints if self.q else (lambda x: jnp.zeros(0))
+
+        def running(x, u, t, lam, rho, active):
+            c = c_fn(x, u, t)
+            return problem.cost(x, u, t) + lam @ c + 0.5 * rho * jnp.sum(active * c**2)
+
+        def terminal(x, nu, rho):
+            h = h_fn(x)
+            return problem.terminal_cost(x) + nu @ h + 0.5 * rho * h @ h
+
+        def objective(xs, us):
+            return jnp.sum(jax.vmap(problem.cost)(xs[:-1], us, ts)) + problem.terminal_cost(xs[-1])
+
+        def violation(xs, us):
+            c = jax.vmap(c_fn)(xs[:-1], us, ts)
+            h = h_fn(xs[-1])
+            worst_c = jnp.max(jnp.maximum(c, 0.0), initial=0.0)
+            worst_h = jnp.max(jnp.abs(h), initial=0.0)
+            return jnp.maximum(worst_c, worst_h), c, h
+
+        def active_set(c, lam):
+            return ((c > 0) | (lam > 0)).astype(c.dtype)
+
+        def augmented(xs, us, lam, nu, rho):
+            c = jax.vmap(c_fn)(xs[:-1], us, ts)
+            active = active_set(c, lam)
+            run = jax.vmap(running, in_axes=(0, 0, 0, 0, None, 0))(xs[:-1], us, ts, lam, rho, active)
+            return jnp.sum(run) + terminal(xs[-1], nu, rho)
+
+        def expand(xs, us, lam, nu, rho):
+            """Dynamics Jacobians and the augmented cost's gradients and Hessians along (xs, us)."""
+            A, B = jax.vmap(jax.jacfwd(problem.dynamics, argnums=(0, 1)))(xs[:-1], us, ts)
+            c = jax.vmap(c_fn)(xs[:-1], us, ts)
+            active = active_set(c, lam)
+            z = jnp.concatenate([xs[:-1], us], axis=1)
+
+            def run_z(zt, t, lam_t, active_t):
+                return running(zt[:n], zt[n:], t, lam_t, rho, active_t)
+
+            g = jax.vmap(jax.grad(run_z))(z, ts, lam, active)
+            H = jax.vmap(jax.hessian(run_z))(z, ts, lam, active)
+            gT = jax.grad(terminal)(xs[-1], nu, rho)
+            HT = jax.hessian(terminal)(xs[-1], nu, rho)
+            return A, B, g, H, gT, HT
+
+        def backward(A, B, g, H, gT, HT, reg):
+            """Riccati recursion; returns gains, the predicted decrease terms and a failure flag."""
+
+            def step(carry, inputs):
+                Vx, Vxx, failed = carry
+                A_t, B_t, g_t, H_t = inputs
+                Qx = g_t[:n] + A_t.T @ Vx
+                Qu = g_t[n:] + B_t.T @ Vx
+                Qxx = H_t[:n, :n] + A_t.T @ Vxx @ A_t
+                Quu = H_t[n:, n:] + B_t.T @ Vxx @ B_t
+                Qux = H_t[n:, :n] + B_t.T @ Vxx @ A_t
+                Quu_reg = Quu + reg * jnp.eye(m)
+                L = jnp.linalg.cholesky(0.5 * (Quu_reg + Quu_reg.T))
+                bad = ~jnp.all(jnp.isfinite(L))
+                solve = lambda r: jax.scipy.linalg.cho_solve((L, True), r)  # noqa: E731
+                k = -solve(Qu)
+                K = -solve(Qux)
+                Vx = Qx + K.T @ Quu @ k + K.T @ Qu + Qux.T @ k
+                Vxx = Qxx + K.T @ Quu @ K + K.T @ Qux + Qux.T @ K
+                Vxx = 0.5 * (Vxx + Vxx.T)
+                dV = jnp.stack([k @ Qu, 0.5 * k @ Quu @ k])
+                return (Vx, Vxx, failed | bad), (k, K, dV)
+
+            (_, _, failed), (k, K, dV) = jax.lax.scan(
+                step, (gT, HT, jnp.zeros((), bool)), (A, B, g, H), reverse=True
+            )
+            failed = failed | ~jnp.all(jnp.isfinite(k)) | ~jnp.all(jnp.isfinite(K))
+            return k, K, jnp.sum(dV, axis=0), failed
+
+        def forward(xs, us, k, K, alpha):
+            """The closed-loop rollout u = ū + α k + K (x − x̄)."""
+
+            def step(x, inputs):
+                x_ref, u_ref, k_t, K_t, t = inputs
+                u = u_ref + alpha * k_t + K_t @ (x - x_ref)
+                x_next = problem.dynamics(x, u, t)
+                return x_next, (x_next, u)
+
+            _, (x_new, u_new) = jax.lax.scan(step, xs[0], (xs[:-1], us, k, K, ts))
+            return jnp.concatenate([xs[:1], x_new], axis=0), u_new
+
+        self.rollout = jax.jit(lambda x0, us: rollout(problem, x0, us))
+        self.objective = jax.jit(objective)
+        self.violation = jax.jit(violation)
+        self.augmented = jax.jit(augmented)
+        self.expand = jax.jit(expand)
+        self.backward = jax.jit(backward)
+        self.forward = jax.jit(forward)
+
+
+def solve(
+    problem: OptimalControlProblem,
+    x0: Float[Array, " n"],
+    controls: Float[Array, "T m"],
+    options: Options = Options(),
+    progress: bool = False,
+) -> Solution:
+    """Solves `problem` from x0, starting from the open-loop `controls` (T, m).
+
+    Never raises for a problem it cannot solve: `Solution.converged` is False and `message` says
+    why (iteration limit, penalty limit, a rollout that diverged to non-finite states).
+
+    Raises:
+        TrajoptError: controls of the wrong shape, or a non-finite x0 or initial rollout.
+    """
+    start = time.perf_counter()
+    x0 = jnp.asarray(x0)
+    us = jnp.asarray(controls)
+    T = problem.horizon
+    if us.ndim != 2 or us.shape[0] != T:
+        raise TrajoptError(f"controls must be (horizon={T}, m), got {tuple(us.shape)}")
+    if not bool(jnp.all(jnp.isfinite(x0))):
+        raise TrajoptError("the initial state is not finite")
+    n, m = x0.shape[0], us.shape[1]
+    fn = _Compiled(problem, n, m)
+    xs = fn.rollout(x0, us)
+    if not bool(jnp.all(jnp.isfinite(xs))):
+        raise TrajoptError("the initial controls' rollout is not finite")
+    lam = jnp.zeros((T, fn.p))
+    nu = jnp.zeros(fn.q)
+    rho = options.penalty
+    reg = options.regularization
+    history: list[tuple[float, float]] = []
+    iterations, outer, message, worst = 0, 0, "", float("inf")
+
+    bar = _bar(progress, options.max_iterations)
+    try:
+        for outer in range(1, options.max_outer + 1):
+            inner_ok, xs, us, reg, iterations, message = _inner(
+                fn, xs, us, lam, nu, rho, reg, options, history, bar, iterations
+            )
+            worst, c, h = fn.violation(xs, us)
+            worst = float(worst)
+            if worst <= options.constraint_tol and inner_ok:
+                message = f"converged: constraint violation {worst:.2e} <= {options.constraint_tol:g}"
+                break
+            if iterations >= options.max_iterations:
+                message = f"did not converge: iteration limit {options.max_iterations} reached ({message})"
+                break
+            if rho >= options.penalty_max:
+                message = f"did not converge: penalty limit reached, constraint violation {worst:.2e}"
+                break
+            lam = jnp.maximum(0.0, lam + rho * c)
+            nu = nu + rho * h
+            rho = min(rho * options.penalty_scale, options.penalty_max)
+        else:
+            message = f"did not converge: {options.max_outer} multiplier updates, constraint violation {worst:.2e}"
+    finally:
+        if bar is not None:
+            bar.close()
+    worst = float(fn.violation(xs, us)[0])
+    converged = message.startswith("converged")
+    return Solution(
+        states=np.asarray(xs), controls=np.asarray(us), cost=float(fn.objective(xs, us)), max_violation=worst,
+        converged=converged, message=message, iterations=iterations, outer=outer,
+        seconds=time.perf_counter() - start, history=history, multipliers=(np.asarray(lam), np.asarray(nu)),
+    )  # fmt: skip
+
+
+def _inner(fn: _Compiled, xs, us, lam, nu, rho, reg, o: Options, history, bar, iterations):
+    """iLQR on the augmented cost for fixed multipliers; returns (ok, xs, us, reg, iterations, message)."""
+    J = float(fn.augmented(xs, us, lam, nu, rho))
+    message = "inner iteration limit"
+    while iterations < o.max_iterations:
+        iterations += 1
+        A, B, g, H, gT, HT = fn.expand(xs, us, lam, nu, rho)
+        while True:
+            k, K, dV, failed = fn.backward(A, B, g, H, gT, HT, reg)
+            if not bool(failed):
+                break
+            reg = reg * 10.0
+            if reg > o.reg_max:
+                return False, xs, us, o.reg_max, iterations, "regularisation limit in the backward pass"
+        step_small = float(jnp.max(jnp.abs(k))) <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
+        accepted = False
+        for alpha in o.line_search:
+            x_new, u_new = fn.forward(xs, us, k, K, alpha)
+            if not bool(jnp.all(jnp.isfinite(x_new))):
+                continue
+            J_new = float(fn.augmented(x_new, u_new, lam, nu, rho))
+            predicted = -(alpha * float(dV[0]) + alpha**2 * float(dV[1]))
+            if J - J_new >= o.armijo * max(predicted, 0.0) and J_new <= J:
+                accepted = True
+                break
+        if accepted:
+            decrease = J - J_new
+            xs, us, J = x_new, u_new, J_new
+            reg = max(o.reg_min, reg / 10.0)
+        else:
+            decrease = 0.0
+            reg = reg * 10.0
+        worst = float(fn.violation(xs, us)[0])
+        history.append((float(fn.objective(xs, us)), worst))
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(cost=f"{history[-1][0]:.4g}", violation=f"{worst:.1e}", rho=f"{rho:.0e}")
+        if step_small or (accepted and decrease <= o.cost_tol * max(abs(J), 1e-12)):
+            return True, xs, us, reg, iterations, "inner solve converged"
+        if not accepted and reg > o.reg_max:
+            return False, xs, us, o.reg_max, iterations, "line search failed at the regularisation limit"
+    return False, xs, us, reg, iterations, message
+
+
+def _bar(progress: bool, total: int):
+    if not progress:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc="iLQR", unit="it", leave=False)
