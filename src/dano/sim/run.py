@@ -119,3 +119,18 @@ def write_csv(path: str | Path, traj: Trajectory, sim: Simulation) -> None:
         for t in range(n):
             for name, rows in poses.items():
                 out.writerow([f"{t * sim.scene.timestep:.6f}", name, *(f"{v:.9g}" for v in rows[t])])
+
+
+def at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
+    """The scene with its DANOs moved to where they come to rest after `seconds` (dropped from
+    0.1 mm up), so pushes start from a true equilibrium."""
+    sim = Simulation.from_scene(dataclasses.replace(scene, duration=seconds))
+    traj = sim.run()
+    check_trajectory(traj, sim.scene)
+    poses = body_poses(traj, sim)
+    bodies = tuple(
+        dataclasses.replace(b, pos=tuple(float(v) for v in poses[b.name][-1, :3]),
+                            quat=tuple(float(v) for v in poses[b.name][-1, 3:]))
+        for b in scene.bodies
+    )  # fmt: skip
+    return dataclasses.replace(scene, bodies=bodies)

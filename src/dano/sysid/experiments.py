@@ -18,7 +18,7 @@ import trimesh
 from mujoco import mjx
 
 from dano.contact import ContactParams
-from dano.sim.run import Simulation, body_poses, check_trajectory
+from dano.sim.run import Simulation, at_rest, body_poses
 from dano.sim.scene import DanoBody, Primitive, Scene, compile_scene
 from dano.sim.step import rollout
 from dano.sysid.data import Track
@@ -128,7 +128,7 @@ def push_plan(
 ) -> PushPlan:
     """Random pushes (see `push_recordings`), the same for every engine that replays them."""
     rng = np.random.default_rng(seed)
-    scene = at_rate(_at_rest(scene), fps)
+    scene = at_rate(at_rest(scene), fps)
     home = np.asarray(scene.primitives[0].pos)
     centre = np.asarray(scene.bodies[0].pos)
     distance = np.linalg.norm(home[:2] - centre[:2])
@@ -227,18 +227,3 @@ def _mesh_push_model(pieces, mass: float, friction: float, dano: DanoBody, pushe
         spec.add_actuator(name=f"force{axis}", target=f"slide{axis}", trntype=mujoco.mjtTrn.mjTRN_JOINT).set_to_motor()
     tip.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[pusher.size[0], 0, 0], mass=pusher.mass, friction=mu)
     return spec.compile()
-
-
-def _at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
-    """The scene with its DANOs moved to where they come to rest after `seconds` (dropped from
-    0.1 mm up), so pushes start from a true equilibrium."""
-    sim = Simulation.from_scene(dataclasses.replace(scene, duration=seconds))
-    traj = sim.run()
-    check_trajectory(traj, sim.scene)
-    poses = body_poses(traj, sim)
-    bodies = tuple(
-        dataclasses.replace(b, pos=tuple(float(v) for v in poses[b.name][-1, :3]),
-                            quat=tuple(float(v) for v in poses[b.name][-1, 3:]))
-        for b in scene.bodies
-    )  # fmt: skip
-    return dataclasses.replace(scene, bodies=bodies)

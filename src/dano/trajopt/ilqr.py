@@ -99,7 +99,7 @@ class Solution:
         message: why it stopped, in words.
         iterations: iLQR iterations in all; outer: multiplier updates.
         seconds: wall time (JIT compilation included).
-        history: per iteration (cost, max violation).
+        history: per iteration (cost, max violation, accepted step size or 0, regularisation).
         multipliers: λ (T, p) and ν (q,) at the end.
     """
 
@@ -112,7 +112,7 @@ class Solution:
     iterations: int
     outer: int
     seconds: float
-    history: list[tuple[float, float]]
+    history: list[tuple[float, float, float, float]]
     multipliers: tuple[np.ndarray, np.ndarray]
 
 
@@ -211,9 +211,7 @@ class _Compiled:
                 dV = jnp.stack([k @ Qu, 0.5 * k @ Quu @ k])
                 return (Vx, Vxx, failed | bad), (k, K, dV)
 
-            (_, _, failed), (k, K, dV) = jax.lax.scan(
-                step, (gT, HT, jnp.zeros((), bool)), (A, B, g, H), reverse=True
-            )
+            (_, _, failed), (k, K, dV) = jax.lax.scan(step, (gT, HT, jnp.zeros((), bool)), (A, B, g, H), reverse=True)
             failed = failed | ~jnp.all(jnp.isfinite(k)) | ~jnp.all(jnp.isfinite(K))
             return k, K, jnp.sum(dV, axis=0), failed
 
@@ -270,12 +268,12 @@ def solve(
     nu = jnp.zeros(fn.q)
     rho = options.penalty
     reg = options.regularization
-    history: list[tuple[float, float]] = []
+    history: list[tuple[float, float, float, float]] = []
     iterations, outer, message, worst = 0, 0, "", float("inf")
 
     bar = _bar(progress, options.max_iterations)
     try:
-        for outer in range(1, options.max_outer + 1):
+        for outer in range(1, options.max_outer + 1):  # noqa: B007 (reported after the loop)
             inner_ok, xs, us, reg, iterations, message = _inner(
                 fn, xs, us, lam, nu, rho, reg, options, history, bar, iterations
             )
@@ -311,9 +309,12 @@ def _inner(fn: _Compiled, xs, us, lam, nu, rho, reg, o: Options, history, bar, i
     """iLQR on the augmented cost for fixed multipliers; returns (ok, xs, us, reg, iterations, message)."""
     J = float(fn.augmented(xs, us, lam, nu, rho))
     message = "inner iteration limit"
+    expansion = None
     while iterations < o.max_iterations:
         iterations += 1
-        A, B, g, H, gT, HT = fn.expand(xs, us, lam, nu, rho)
+        if expansion is None:  # kept after a rejected step: only the regularisation changes
+            expansion = fn.expand(xs, us, lam, nu, rho)
+        A, B, g, H, gT, HT = expansion
         while True:
             k, K, dV, failed = fn.backward(A, B, g, H, gT, HT, reg)
             if not bool(failed):
@@ -334,13 +335,13 @@ def _inner(fn: _Compiled, xs, us, lam, nu, rho, reg, o: Options, history, bar, i
                 break
         if accepted:
             decrease = J - J_new
-            xs, us, J = x_new, u_new, J_new
+            xs, us, J, expansion = x_new, u_new, J_new, None
             reg = max(o.reg_min, reg / 10.0)
         else:
             decrease = 0.0
             reg = reg * 10.0
         worst = float(fn.violation(xs, us)[0])
-        history.append((float(fn.objective(xs, us)), worst))
+        history.append((float(fn.objective(xs, us)), worst, alpha if accepted else 0.0, reg))
         if bar is not None:
             bar.update(1)
             bar.set_postfix(cost=f"{history[-1][0]:.4g}", violation=f"{worst:.1e}", rho=f"{rho:.0e}")

@@ -1,0 +1,313 @@
+"""The paper's push-and-slide task (Sec. V-B, Fig. 7) as an optimal control problem.
+
+An end effector pushes a DANO resting on the table so that it slides to a goal, then returns to
+its own goal. Two robots:
+
+- "sphere": the paper's simplification, a fully actuated sphere (1 kg, weight compensated) driven by
+  a force (N) along x, y, z; controls are those forces, bounded by `PushTask.force_limit`.
+- "panda": the 7-joint Franka Panda of example-robot-data, its collision meshes touching the DANO
+  through the contact model; controls are the arm's position-servo targets (fingers held), bounded
+  by the joint ranges, with the servo torque kp (target − q) − kv q̇ within the Panda's torque limits.
+
+State x = (qpos, qvel) of the MuJoCo model; one step of the dynamics is one frame of `dt` seconds
+(`dano.sim.step.step`: substeps with fresh contact wrenches). Costs: the DANO's final position
+and velocity, the end effector's final position and speed, effort. Constraints (augmented
+Lagrangian): the DANO's final xy on the goal (`goal_as_constraint`, else a cost), input limits,
+the end effector above the ground.
+"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dano.sim.run import Simulation, at_rest
+from dano.sim.scene import DanoBody, Primitive, Scene, panda
+from dano.sim.step import mjx_kinematics, scaled_model, step
+from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, solve
+from dano.types import DANO
+
+PANDA_HOME = (0.0, 0.7, 0.0, -2.0, 0.0, 2.6, 0.785, 0.02, 0.02)
+"""Panda joints with the hand about 3 cm above the floor, 0.58 m in front of the base."""
+PANDA_TORQUE = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
+"""The Panda's joint torque limits, N m (Franka's datasheet)."""
+PANDA_TIPS = ("panda_leftfinger", "panda_rightfinger")
+
+
+@dataclasses.dataclass(frozen=True)
+class PushTask:
+    """What to achieve and how hard.
+
+    Attributes:
+        goal: where the DANO's centre of mass should end, xy (m), relative to where it rests.
+        horizon: frames; dt: seconds per frame; substep: simulator step, s (≤ 0.5 ms: the contact's
+            Jacobian needs it, see README).
+        ee_goal: where the end effector should end (world, m); default where it starts.
+        goal_as_constraint: the DANO's final xy as an equality constraint (else a cost).
+        force_limit: |force| per axis for the sphere, N.
+        clearance: lowest height of the end effector's lowest point, m.
+        goal_weight, ee_weight, velocity_weight, effort_weight: cost weights (per m², m², (m/s)²,
+            N² or rad²).
+    """
+
+    goal: tuple[float, float] = (0.1, 0.0)
+    horizon: int = 10
+    dt: float = 0.08
+    substep: float = 5e-4
+    ee_goal: tuple[float, float, float] | None = None
+    goal_as_constraint: bool = True
+    force_limit: float = 10.0
+    clearance: float = 0.005
+    goal_weight: float = 1e3
+    ee_weight: float = 1.0
+    velocity_weight: float = 1.0
+    effort_weight: float = 1e-3
+
+
+@dataclasses.dataclass(frozen=True)
+class PushProblem:
+    """A push ready to solve: the problem, x0, a first guess of the controls, and what they mean."""
+
+    robot: str
+    task: PushTask
+    sim: Simulation
+    problem: OptimalControlProblem
+    x0: np.ndarray
+    initial_controls: np.ndarray
+    goal_world: np.ndarray
+    ee_goal: np.ndarray
+
+    def object_position(self, x) -> jax.Array:
+        a = self.sim.world.dano_qpos[0]
+        return jnp.asarray(x)[..., a : a + 3]
+
+    def full_ctrl(self, u) -> jax.Array:
+        return _full_ctrl(self.robot, self.sim, u)
+
+
+def _full_ctrl(robot: str, sim: Simulation, u):
+    if robot == "sphere":
+        return u
+    fingers = jnp.asarray(PANDA_HOME[7:], dtype=u.dtype)
+    return jnp.concatenate([u, jnp.broadcast_to(fingers, (*u.shape[:-1], 2))], axis=-1)
+
+
+def push_problem(dano: DANO, robot: str = "sphere", task: PushTask = PushTask(), friction: float = 0.3) -> PushProblem:
+    """The push of `dano` by `robot` ("sphere" or "panda") as an `OptimalControlProblem`.
+
+    Raises:
+        TrajoptError: an unknown robot, a goal too close to push to, or a bad horizon.
+    """
+    if robot not in ("sphere", "panda"):
+        raise TrajoptError(f"robot must be 'sphere' or 'panda', got {robot!r}")
+    if task.horizon < 2:
+        raise TrajoptError(f"horizon must be at least 2 frames, got {task.horizon}")
+    goal = np.asarray(task.goal, dtype=float)
+    if not np.all(np.isfinite(goal)) or goal.shape != (2,):
+        raise TrajoptError(f"goal must be two finite numbers (x, y in m), got {task.goal}")
+    distance = float(np.linalg.norm(goal))
+    if distance < 1e-3:
+        raise TrajoptError("the goal is where the object already is: nothing to push")
+    substeps = max(1, int(np.ceil(task.dt / task.substep - 1e-9)))
+    scene = _scene(dano, robot, goal / distance, friction, task.dt, substeps)
+    sim = Simulation.from_scene(scene)
+    return _assemble(robot, task, sim, goal)
+
+
+def _scene(dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: float, substeps: int) -> Scene:
+    from dano.contact import ContactParams
+    from dano.sysid.experiments import resting_height
+
+    z = resting_height(dano)
+    reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
+    contact = ContactParams(sliding_friction=friction)
+    if robot == "sphere":
+        radius = 0.03
+        start = -(reach + radius + 0.02) * direction
+        pusher = Primitive("pusher", "sphere", (radius,), pos=(*start, z), mode="actuated", mass=1.0)
+        scene = Scene(bodies=(DanoBody("object", dano, pos=(0.0, 0.0, z)),), primitives=(pusher,), contact=contact)
+    else:
+        # The hand sweeps sideways (base yaw) about 0.58 m in front of the base: the object sits
+        # beside the hand on the side away from the goal direction, base placed accordingly.
+        side = np.array([-direction[1], direction[0]])
+        base = -0.58 * side - (reach + 0.06) * direction
+        yaw = float(np.arctan2(side[1], side[0]))
+        quat = (float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2)))
+        arm = dataclasses.replace(panda(base_pos=(*base, 0.0), qpos=PANDA_HOME), base_quat=quat)
+        scene = Scene(bodies=(DanoBody("object", dano, pos=(0.0, 0.0, z)),), robot=arm, contact=contact)
+    scene = dataclasses.replace(scene, timestep=dt, substeps=substeps, duration=dt)
+    return at_rest(scene)
+
+
+def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> PushProblem:
+    world, params, model = sim.world, sim.params, sim.model
+    m = scaled_model(world, params, sim.mjx_model)
+    d0 = sim.data
+    nq = model.nq
+    x0 = np.concatenate([np.asarray(d0.qpos), np.asarray(d0.qvel)])
+    a = world.dano_qpos[0]
+    goal_world = np.asarray(d0.qpos)[a : a + 2] + goal
+
+    def dynamics(x, u, t):
+        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=_full_ctrl(robot, sim, u))
+        d = step(world, params, m, d)
+        return jnp.concatenate([d.qpos, d.qvel])
+
+    if robot == "sphere":
+        p = world.prim_qpos[0]
+        home = jnp.asarray(sim.scene.primitives[0].pos)
+        radius = float(sim.scene.primitives[0].size[0])
+        vp = _dof(sim, p)
+
+        def effector(x):  # position and velocity
+            return home + x[p : p + 3], x[nq + vp : nq + vp + 3]
+
+        def lowest(x):
+            return (home[2] + x[p + 2] - radius)[None]
+
+        limit = task.force_limit
+        m_u = 3
+
+        def input_limits(x, u):
+            return jnp.concatenate([u - limit, -u - limit])
+
+        def guess(scale):  # push towards the goal for a third, brake for a third
+            T, third = task.horizon, task.horizon // 3
+            u = np.zeros((T, 3))
+            u[:third, :2] = scale * direction_xy
+            u[third : 2 * third, :2] = -0.5 * scale * direction_xy
+            return u
+
+        direction_xy = goal / np.linalg.norm(goal)
+        scales = np.linspace(0.5, task.force_limit, 16)
+    else:
+        tips = [model.body(name).id for name in PANDA_TIPS]
+        hand = model.body("panda_hand").id
+        kp, kv = sim.scene.robot.kp, sim.scene.robot.kv
+        lo, hi = (jnp.asarray(model.jnt_range[:7, i]) for i in (0, 1))
+        tau = jnp.asarray(PANDA_TORQUE)
+        m_u = 7
+
+        def kinematics(x):
+            return mjx_kinematics(sim.mjx_model, d0.replace(qpos=x[:nq]))
+
+        def effector(x):  # the hand's position; its speed enters through the joint velocities
+            return kinematics(x).xpos[hand], x[nq : nq + 7]
+
+        def lowest(x):  # the fingertips: 5.4 cm along each finger's z
+            k = kinematics(x)
+            return k.xpos[jnp.asarray(tips), 2] + k.xmat[jnp.asarray(tips), 2, 2] * 0.054
+
+        def input_limits(x, u):
+            torque = kp * (u - x[:7]) - kv * x[nq : nq + 7]
+            return jnp.concatenate([u - hi, lo - u, torque - tau, -torque - tau])
+
+        def guess(scale):  # sweep the base yaw towards the goal and hold
+            u = np.tile(np.asarray(PANDA_HOME[:7]), (task.horizon, 1))
+            u[:, 0] = -scale * np.minimum(1.0, np.arange(1, task.horizon + 1) / (0.6 * task.horizon))
+            return u
+
+        scales = np.linspace(0.05, 1.0, 16)
+    ee_start = np.asarray(effector(jnp.asarray(x0))[0])
+    ee_goal = ee_start if task.ee_goal is None else np.asarray(task.ee_goal, dtype=float)
+    goal_j, ee_goal_j = jnp.asarray(goal_world), jnp.asarray(ee_goal)
+    va = _dof(sim, a)
+    reference_u = jnp.zeros(m_u) if robot == "sphere" else jnp.asarray(PANDA_HOME[:7])
+
+    def cost(x, u, t):
+        return task.effort_weight * jnp.sum((u - reference_u) ** 2)
+
+    def terminal_cost(x):
+        ee, ee_vel = effector(x)
+        v = x[nq + va : nq + va + 6]
+        c = task.ee_weight * jnp.sum((ee - ee_goal_j) ** 2) + task.velocity_weight * (v @ v + ee_vel @ ee_vel)
+        if not task.goal_as_constraint:
+            c = c + task.goal_weight * jnp.sum((x[a : a + 2] - goal_j) ** 2)
+        return c
+
+    def constraints(x, u, t):
+        return jnp.concatenate([input_limits(x, u), task.clearance - lowest(x)])
+
+    terminal = (lambda x: x[a : a + 2] - goal_j) if task.goal_as_constraint else None
+    problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal)
+    first = _warm_start(problem, x0, [guess(s) for s in scales], lambda x: x[a : a + 2] - goal_j)
+    return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal)
+
+
+def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss) -> np.ndarray:
+    """The guess whose open-loop rollout ends nearest the goal (all rolled out at once).
+
+    iLQR needs a start in contact: from zero controls the pusher never touches the object and the
+    goal has no gradient in the controls."""
+    from dano.trajopt.ilqr import rollout
+
+    def final_miss(u):
+        return jnp.linalg.norm(miss(rollout(problem, jnp.asarray(x0), u)[-1]))
+
+    misses = np.asarray(jax.jit(jax.vmap(final_miss))(jnp.asarray(np.stack(guesses))))
+    misses = np.where(np.isfinite(misses), misses, np.inf)
+    return guesses[int(np.argmin(misses))]
+
+
+def _dof(sim: Simulation, qpos_address: int) -> int:
+    """The qvel address of the joint whose qpos starts at `qpos_address`."""
+    model = sim.model
+    j = int(np.nonzero(model.jnt_qposadr == qpos_address)[0][0])
+    return int(model.jnt_dofadr[j])
+
+
+@dataclasses.dataclass(frozen=True)
+class PushResult:
+    """A solved push and its open-loop replay in the forward simulator.
+
+    Attributes:
+        solution: the optimiser's `Solution`.
+        final_error_m: distance of the DANO's final xy from the goal, by the optimiser's states.
+        ee_error_m: the end effector's final distance from its goal.
+        replay_gap_m: the DANO's final position in the replay minus the optimiser's, m (the same
+            dynamics: round-off only).
+        replay: the replayed `Trajectory` (for `render_video`).
+    """
+
+    solution: Solution
+    final_error_m: float
+    ee_error_m: float
+    replay_gap_m: float
+    replay: object
+
+    def summary(self) -> dict:
+        s = self.solution
+        return {
+            "final_error_m": self.final_error_m, "iterations": s.iterations, "seconds": s.seconds,
+            "max_violation": s.max_violation, "cost": s.cost, "converged": s.converged, "message": s.message,
+            "outer_iterations": s.outer, "ee_error_m": self.ee_error_m, "replay_gap_m": self.replay_gap_m,
+        }  # fmt: skip
+
+
+DEFAULT_OPTIONS = Options(max_iterations=150, penalty=100.0)
+"""iLQR settings for the push: ρ starts high enough that the goal matters from the first iteration."""
+
+
+def solve_push(push: PushProblem, options: Options = DEFAULT_OPTIONS, progress: bool = False) -> PushResult:
+    """Solves the push from its warm start and replays the controls open loop."""
+    sol = solve(push.problem, jnp.asarray(push.x0), jnp.asarray(push.initial_controls), options, progress=progress)
+    final = np.asarray(push.object_position(sol.states[-1]))
+    ee = np.asarray(_effector_position(push, sol.states[-1]))
+    ctrl = push.full_ctrl(jnp.asarray(sol.controls))
+    replay = push.sim.run(push.task.horizon, ctrl=ctrl)
+    gap = float(np.linalg.norm(np.asarray(push.object_position(replay.qpos[-1])) - final))
+    return PushResult(
+        solution=sol, final_error_m=float(np.linalg.norm(final[:2] - push.goal_world)),
+        ee_error_m=float(np.linalg.norm(ee - push.ee_goal)), replay_gap_m=gap, replay=replay,
+    )  # fmt: skip
+
+
+def _effector_position(push: PushProblem, x) -> jax.Array:
+    sim, nq = push.sim, push.sim.model.nq
+    x = jnp.asarray(x)
+    if push.robot == "sphere":
+        p = sim.world.prim_qpos[0]
+        return jnp.asarray(sim.scene.primitives[0].pos) + x[p : p + 3]
+    k = mjx_kinematics(sim.mjx_model, sim.data.replace(qpos=x[:nq]))
+    return k.xpos[sim.model.body("panda_hand").id]

@@ -1,0 +1,140 @@
+"""Constrained iLQR (augmented Lagrangian): the LQ solution, constraints, infeasibility, and the push task."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dano
+from dano.cli import main
+from dano.fields import BoxField
+from dano.trajopt import (
+    OptimalControlProblem,
+    Options,
+    PushTask,
+    TrajoptError,
+    push_problem,
+    rollout,
+    solve,
+    solve_push,
+)
+from helpers import central_difference
+
+N, M, T = 4, 2, 20
+
+
+@pytest.fixture(scope="module")
+def lq():
+    rng = np.random.default_rng(0)
+    A = np.eye(N) + 0.1 * rng.normal(size=(N, N))
+    B = rng.normal(size=(N, M))
+    Q, R, QT = np.diag([1.0, 2.0, 0.5, 1.0]), 0.1 * np.eye(M), 10.0 * np.eye(N)
+    Aj, Bj, Qj, Rj, QTj = map(jnp.asarray, (A, B, Q, R, QT))
+    problem = OptimalControlProblem(
+        dynamics=lambda x, u, t: Aj @ x + Bj @ u,
+        cost=lambda x, u, t: 0.5 * x @ Qj @ x + 0.5 * u @ Rj @ u,
+        terminal_cost=lambda x: 0.5 * x @ QTj @ x,
+        horizon=T,
+    )
+    return problem, (A, B, Q, R, QT), jnp.asarray(rng.normal(size=N))
+
+
+def riccati_controls(A, B, Q, R, QT, x0):
+    """The finite-horizon discrete LQR by the textbook recursion (numpy, independent of the solver)."""
+    P, gains = QT, []
+    for _ in range(T):
+        K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        gains.append(K)
+        P = Q + A.T @ P @ (A - B @ K)
+    x, us = np.asarray(x0), []
+    for K in reversed(gains):
+        us.append(-K @ x)
+        x = A @ x + B @ us[-1]
+    return np.array(us)
+
+
+def test_ilqr_solves_linear_quadratic_problem_to_the_riccati_solution(lq):
+    problem, matrices, x0 = lq
+    sol = solve(problem, x0, jnp.zeros((T, M)))
+    assert sol.converged, sol.message
+    np.testing.assert_allclose(sol.controls, riccati_controls(*matrices, x0), atol=1e-9)
+    assert sol.iterations <= 3  # one Newton step, then the convergence check
+
+
+def test_input_bounds_and_goal_constraint_hold_at_the_solution(lq):
+    problem, _, x0 = lq
+    bounded = OptimalControlProblem(
+        problem.dynamics, problem.cost, problem.terminal_cost, T,
+        constraints=lambda x, u, t: jnp.concatenate([u - 0.3, -u - 0.3]),
+        terminal_constraints=lambda x: x[:2],
+    )  # fmt: skip
+    sol = solve(bounded, x0, jnp.zeros((T, M)))
+    assert sol.converged, sol.message
+    assert sol.max_violation <= 1e-4
+    assert np.max(np.abs(sol.controls)) <= 0.3 + 1e-4
+    assert np.max(np.abs(sol.states[-1, :2])) <= 1e-4
+    assert np.max(np.abs(sol.controls)) > 0.29  # the bound is active: the unconstrained optimum exceeds it
+    np.testing.assert_allclose(np.asarray(rollout(bounded, x0, jnp.asarray(sol.controls))), sol.states, atol=1e-12)
+
+
+def test_infeasible_goal_is_reported_not_raised(lq):
+    problem, _, x0 = lq
+    impossible = OptimalControlProblem(
+        problem.dynamics, problem.cost, problem.terminal_cost, T,
+        constraints=lambda x, u, t: jnp.concatenate([u - 1e-3, -u - 1e-3]),
+        terminal_constraints=lambda x: x[:2] - 100.0,
+    )  # fmt: skip
+    sol = solve(impossible, x0, jnp.zeros((T, M)), Options(max_iterations=60))
+    assert not sol.converged
+    assert sol.message.startswith("did not converge")
+    assert sol.max_violation > 1.0
+    assert np.all(np.isfinite(sol.states)) and np.all(np.isfinite(sol.controls))
+
+
+def test_wrong_control_shape_is_a_named_error(lq):
+    problem, _, x0 = lq
+    with pytest.raises(TrajoptError, match="horizon"):
+        solve(problem, x0, jnp.zeros((T + 1, M)))
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return dano.build_dano(BoxField(size=(0.06, 0.06, 0.06)), mass=0.3, n_points=150, seed=0)
+
+
+def test_push_dynamics_jacobian_matches_central_differences(cube):
+    push = push_problem(cube, "sphere", PushTask(goal=(0.05, 0.0), horizon=4))
+    x0, us = jnp.asarray(push.x0), jnp.asarray(push.initial_controls)
+    a = push.sim.world.dano_qpos[0]
+
+    def final(u):
+        return rollout(push.problem, x0, u)[-1, a : a + 2]
+
+    direction = jnp.asarray(np.random.default_rng(1).normal(size=us.shape))
+    exact = jnp.tensordot(jax.jacfwd(final)(us), direction, axes=2)
+    assert float(jnp.linalg.norm(exact)) > 1e-4  # the warm start is in contact: controls move the cube
+    numeric = central_difference(lambda s: final(us + s * direction), 0.0, 1e-4)
+    np.testing.assert_allclose(exact, numeric, rtol=1e-4, atol=1e-9)
+
+
+@pytest.mark.slow
+def test_sphere_pushes_bunny_to_its_goal(bunny_mesh):
+    from dano.fields import mesh_field
+
+    bunny = dano.build_dano(mesh_field(bunny_mesh, resolution=48, progress=False), n_points=100, mass=0.5)
+    push = push_problem(bunny, "sphere", PushTask(goal=(0.08, 0.0), horizon=8))
+    result = solve_push(push)
+    assert result.solution.converged, result.solution.message
+    assert result.final_error_m < 0.01
+    assert result.solution.max_violation <= 1e-4
+    assert np.max(np.abs(result.solution.controls)) <= push.task.force_limit + 1e-4
+    assert result.replay_gap_m < 1e-9  # the open-loop replay lands where the optimiser said
+
+
+def test_cli_refuses_a_goal_at_the_start(capsys, tmp_path, cube):
+    from dano.io import save_dano
+
+    save_dano(tmp_path / "cube.dano.npz", cube)
+    code = main(["trajopt", "push", "--dano", str(tmp_path / "cube.dano.npz"), "--goal", "0", "0", "--json"])
+    assert code == 2
+    assert "TrajoptError" in capsys.readouterr().err
