@@ -42,7 +42,8 @@ def main() -> None:
     print(f"{'robot':8} {'setup s':>8} {'cold s':>8} {'warm s':>8} {'iters':>6} {'outer':>6} {'violation':>10} "
           f"{'error mm':>9} converged")  # fmt: skip
     for robot, setup, cold_s, warm_s, its, outer, viol, err, ok in rows:
-        print(f"{robot:8} {setup:8.1f} {cold_s:8.1f} {warm_s:8.1f} {its:6d} {outer:6d} {viol:10.2e} {err * 1e3:9.3f} {ok}")
+        times = f"{setup:8.1f} {cold_s:8.1f} {warm_s:8.1f}"
+        print(f"{robot:8} {times} {its:6d} {outer:6d} {viol:10.2e} {err * 1e3:9.3f} {ok}")
     if len(rows) == 2:
         print(f"warm time panda / sphere: {rows[1][3] / rows[0][3]:.2f}")
 
