@@ -57,6 +57,19 @@ def mujoco_mesh_model(
 
     Mass is `mass`, spread over the pieces by volume; MuJoCo computes the inertia from the meshes.
     """
+    return mujoco_mesh_spec(pieces, mass, pos, quat, friction, timestep, ground).compile()
+
+
+def mujoco_mesh_spec(
+    pieces: list[trimesh.Trimesh],
+    mass: float,
+    pos=(0.0, 0.0, 0.1),
+    quat=(1.0, 0.0, 0.0, 0.0),
+    friction: float = 0.5,
+    timestep: float = 0.002,
+    ground: bool = True,
+) -> mujoco.MjSpec:
+    """The uncompiled `mujoco_mesh_model`, for adding more to the scene (the body is "object")."""
     spec = mujoco.MjSpec()
     spec.option.timestep = timestep
     if ground:
@@ -68,4 +81,4 @@ def mujoco_mesh_model(
         spec.add_mesh(name=f"piece{i}", uservert=p.vertices.ravel().tolist(), userface=p.faces.ravel().tolist())
         body.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"piece{i}", density=density,
                       friction=[friction, 0.005, 0.0001])  # fmt: skip
-    return spec.compile()
+    return spec

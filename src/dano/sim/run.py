@@ -122,8 +122,8 @@ def write_csv(path: str | Path, traj: Trajectory, sim: Simulation) -> None:
 
 
 def at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
-    """The scene with its DANOs moved to where they come to rest after `seconds` (dropped from
-    0.1 mm up), so pushes start from a true equilibrium."""
+    """The scene with its DANOs moved to where they are after `seconds` of simulation (placed just
+    above the table, they come to rest), so pushes start from a true equilibrium."""
     sim = Simulation.from_scene(dataclasses.replace(scene, duration=seconds))
     traj = sim.run()
     check_trajectory(traj, sim.scene)
@@ -134,3 +134,10 @@ def at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
         for b in scene.bodies
     )  # fmt: skip
     return dataclasses.replace(scene, bodies=bodies)
+
+
+def at_interval(scene: Scene, dt: float) -> Scene:
+    """The scene with one frame per `dt` s, split into substeps no longer than the scene's own
+    (`scene.timestep / scene.substeps`: the contact's Jacobian needs them short, see README)."""
+    substeps = max(1, int(np.ceil(dt / (scene.timestep / scene.substeps) - 1e-9)))
+    return dataclasses.replace(scene, timestep=dt, substeps=substeps)

@@ -18,16 +18,16 @@ import trimesh
 from mujoco import mjx
 
 from dano.contact import ContactParams
-from dano.sim.run import Simulation, at_rest, body_poses
+from dano.sim.run import Simulation, at_interval, at_rest, body_poses
 from dano.sim.scene import DanoBody, Primitive, Scene, compile_scene
 from dano.sim.step import rollout
 from dano.sysid.data import Track
-from dano.sysid.problem import Recording, at_interval, with_values
+from dano.sysid.problem import Recording, with_values
 from dano.types import DANO
 
 
 def at_rate(scene: Scene, fps: float) -> Scene:
-    """The scene with one frame per camera frame (see `dano.sysid.problem.at_interval`)."""
+    """The scene with one frame per camera frame (see `dano.sim.run.at_interval`)."""
     return at_interval(scene, 1.0 / fps)
 
 
@@ -63,12 +63,16 @@ def slide_track(
 PUSHER = "pusher"
 
 
-def push_scene(dano: DANO, friction: float = 0.3, radius: float = 0.03, mass: float = 1.0) -> Scene:
+def push_scene(
+    dano: DANO, friction: float = 0.3, radius: float = 0.03, mass: float = 1.0, direction: tuple = (1.0, 0.0)
+) -> Scene:
     """A DANO at rest on the table and a sphere end effector (actuated along x, y, z, weight
-    compensated, known `mass`) at its centre of mass's height, 0.1 m + radius away along -x."""
+    compensated, known `mass`) at its centre of mass's height, 2 cm clear of it on the side away
+    from the unit xy `direction` it would push in (default: behind it along -x)."""
     z = resting_height(dano)
     reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
-    pusher = Primitive(PUSHER, "sphere", (radius,), pos=(-(reach + radius + 0.02), 0.0, z), mode="actuated", mass=mass)
+    x, y = (-(reach + radius + 0.02) * np.asarray(direction, dtype=float)).tolist()
+    pusher = Primitive(PUSHER, "sphere", (radius,), pos=(x, y, z), mode="actuated", mass=mass)
     return Scene(
         bodies=(DanoBody("object", dano, pos=(0.0, 0.0, z)),), primitives=(pusher,),
         contact=ContactParams(sliding_friction=friction),
@@ -210,16 +214,10 @@ def mesh_push_recordings(
 
 def _mesh_push_model(pieces, mass: float, friction: float, dano: DanoBody, pusher: Primitive, timestep: float):
     """MuJoCo C model of a push: ground, the object as convex pieces, the actuated sphere."""
-    spec = mujoco.MjSpec()
-    spec.option.timestep = timestep
+    from dano.baselines.mesh import mujoco_mesh_spec
+
+    spec = mujoco_mesh_spec(pieces, mass, dano.pos, dano.quat, friction, timestep)
     mu = [friction, 0.005, 0.0001]
-    spec.worldbody.add_geom(type=mujoco.mjtGeom.mjGEOM_PLANE, size=[0, 0, 1], friction=mu)
-    body = spec.worldbody.add_body(name="object", pos=list(dano.pos), quat=list(dano.quat))
-    body.add_freejoint()
-    density = mass / sum(p.volume for p in pieces)
-    for i, p in enumerate(pieces):
-        spec.add_mesh(name=f"piece{i}", uservert=p.vertices.ravel().tolist(), userface=p.faces.ravel().tolist())
-        body.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"piece{i}", density=density, friction=mu)
     tip = spec.worldbody.add_body(name=PUSHER, pos=list(pusher.pos))
     tip.gravcomp = 1.0
     for axis, vector in zip("xyz", np.eye(3), strict=True):

@@ -28,6 +28,7 @@ from mujoco import mjx
 from dano.contact.wrench import ContactParams
 from dano.errors import DanoError
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul
+from dano.sim.run import at_interval
 from dano.sim.scene import Params, Scene, World, compile_scene, pairs
 from dano.sim.step import rollout
 from dano.sysid.data import Track, estimate_velocity
@@ -58,13 +59,6 @@ DEFAULT_BOUNDS: dict[str, tuple[float, float]] = {
     "inertia_scale": (0.1, 10.0),
 }
 """Bounds used when none are given: Table I's ranges, widened; scales over decades."""
-
-
-def at_interval(scene: Scene, dt: float) -> Scene:
-    """The scene with one frame per `dt` s, split into substeps no longer than the scene's own
-    (`scene.timestep / scene.substeps`: the contact's Jacobian needs them short, see README)."""
-    substeps = max(1, int(np.ceil(dt / (scene.timestep / scene.substeps) - 1e-9)))
-    return dataclasses.replace(scene, timestep=dt, substeps=substeps)
 
 
 def canonical(name: str) -> str:

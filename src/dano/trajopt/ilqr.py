@@ -128,8 +128,9 @@ def rollout(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: Fl
     return jnp.concatenate([x0[None], xs], axis=0)
 
 
-def _zeros_like_constraints(fn, x, u, t) -> int:
-    return 0 if fn is None else int(jax.eval_shape(fn, x, u, t).shape[0])
+def _width(fn, *args) -> int:
+    """Length of the vector `fn(*args)` returns (0 for no function), without evaluating it."""
+    return 0 if fn is None else int(jax.eval_shape(fn, *args).shape[0])
 
 
 class _Compiled:
@@ -137,10 +138,8 @@ class _Compiled:
 
     def __init__(self, problem: OptimalControlProblem, n: int, m: int):
         T = problem.horizon
-        self.p = _zeros_like_constraints(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
-        self.q = 0 if problem.terminal_constraints is None else int(
-            jax.eval_shape(problem.terminal_constraints, jnp.zeros(n)).shape[0]
-        )  # fmt: skip
+        self.p = _width(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
+        self.q = _width(problem.terminal_constraints, jnp.zeros(n))
         ts = jnp.arange(T)
         c_fn = problem.constraints if self.p else (lambda x, u, t: jnp.zeros(0))
         h_fn = problem.terminal_constraints if self.q else (lambda x: jnp.zeros(0))

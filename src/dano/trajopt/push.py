@@ -17,13 +17,14 @@ the end effector above the ground.
 """
 
 import dataclasses
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dano.sim.run import Simulation, at_rest
-from dano.sim.scene import DanoBody, Primitive, Scene, panda
+from dano.sim.run import Simulation, at_interval, at_rest
+from dano.sim.scene import Scene, panda
 from dano.sim.step import mjx_kinematics, scaled_model, step
 from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, solve
 from dano.types import DANO
@@ -77,16 +78,18 @@ class PushProblem:
     initial_controls: np.ndarray
     goal_world: np.ndarray
     ee_goal: np.ndarray
+    effector: Callable
+    """x -> (end effector position (3,), its velocity terms)."""
 
     def object_position(self, x) -> jax.Array:
         a = self.sim.world.dano_qpos[0]
         return jnp.asarray(x)[..., a : a + 3]
 
     def full_ctrl(self, u) -> jax.Array:
-        return _full_ctrl(self.robot, self.sim, u)
+        return _full_ctrl(self.robot, u)
 
 
-def _full_ctrl(robot: str, sim: Simulation, u):
+def _full_ctrl(robot: str, u):
     if robot == "sphere":
         return u
     fingers = jnp.asarray(PANDA_HOME[7:], dtype=u.dtype)
@@ -109,35 +112,27 @@ def push_problem(dano: DANO, robot: str = "sphere", task: PushTask = PushTask(),
     distance = float(np.linalg.norm(goal))
     if distance < 1e-3:
         raise TrajoptError("the goal is where the object already is: nothing to push")
-    substeps = max(1, int(np.ceil(task.dt / task.substep - 1e-9)))
-    scene = _scene(dano, robot, goal / distance, friction, task.dt, substeps)
+    scene = _scene(dano, robot, goal / distance, friction, task.dt, task.substep)
     sim = Simulation.from_scene(scene)
     return _assemble(robot, task, sim, goal)
 
 
-def _scene(dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: float, substeps: int) -> Scene:
-    from dano.contact import ContactParams
-    from dano.sysid.experiments import resting_height
+def _scene(dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: float, substep: float) -> Scene:
+    from dano.sysid.experiments import push_scene
 
-    z = resting_height(dano)
-    reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
-    contact = ContactParams(sliding_friction=friction)
-    if robot == "sphere":
-        radius = 0.03
-        start = -(reach + radius + 0.02) * direction
-        pusher = Primitive("pusher", "sphere", (radius,), pos=(*start, z), mode="actuated", mass=1.0)
-        scene = Scene(bodies=(DanoBody("object", dano, pos=(0.0, 0.0, z)),), primitives=(pusher,), contact=contact)
-    else:
+    scene = push_scene(dano, friction, direction=tuple(direction))
+    if robot == "panda":
         # The hand sweeps sideways (base yaw) about 0.58 m in front of the base: the object sits
         # beside the hand on the side away from the goal direction, base placed accordingly.
+        reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
         side = np.array([-direction[1], direction[0]])
         base = -0.58 * side - (reach + 0.06) * direction
         yaw = float(np.arctan2(side[1], side[0]))
         quat = (float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2)))
         arm = dataclasses.replace(panda(base_pos=(*base, 0.0), qpos=PANDA_HOME), base_quat=quat)
-        scene = Scene(bodies=(DanoBody("object", dano, pos=(0.0, 0.0, z)),), robot=arm, contact=contact)
-    scene = dataclasses.replace(scene, timestep=dt, substeps=substeps, duration=dt)
-    return at_rest(scene)
+        scene = dataclasses.replace(scene, primitives=(), robot=arm)
+    scene = dataclasses.replace(scene, timestep=substep, substeps=1, duration=dt)
+    return at_rest(at_interval(scene, dt))
 
 
 def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> PushProblem:
@@ -150,7 +145,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
     goal_world = np.asarray(d0.qpos)[a : a + 2] + goal
 
     def dynamics(x, u, t):
-        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=_full_ctrl(robot, sim, u))
+        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=_full_ctrl(robot, u))
         d = step(world, params, m, d)
         return jnp.concatenate([d.qpos, d.qvel])
 
@@ -232,7 +227,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
     terminal = (lambda x: x[a : a + 2] - goal_j) if task.goal_as_constraint else None
     problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal)
     first = _warm_start(problem, x0, [guess(s) for s in scales], lambda x: x[a : a + 2] - goal_j)
-    return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal)
+    return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, effector)
 
 
 def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss) -> np.ndarray:
@@ -293,7 +288,7 @@ def solve_push(push: PushProblem, options: Options = DEFAULT_OPTIONS, progress: 
     """Solves the push from its warm start and replays the controls open loop."""
     sol = solve(push.problem, jnp.asarray(push.x0), jnp.asarray(push.initial_controls), options, progress=progress)
     final = np.asarray(push.object_position(sol.states[-1]))
-    ee = np.asarray(_effector_position(push, sol.states[-1]))
+    ee = np.asarray(push.effector(jnp.asarray(sol.states[-1]))[0])
     ctrl = push.full_ctrl(jnp.asarray(sol.controls))
     replay = push.sim.run(push.task.horizon, ctrl=ctrl)
     gap = float(np.linalg.norm(np.asarray(push.object_position(replay.qpos[-1])) - final))
@@ -301,13 +296,3 @@ def solve_push(push: PushProblem, options: Options = DEFAULT_OPTIONS, progress: 
         solution=sol, final_error_m=float(np.linalg.norm(final[:2] - push.goal_world)),
         ee_error_m=float(np.linalg.norm(ee - push.ee_goal)), replay_gap_m=gap, replay=replay,
     )  # fmt: skip
-
-
-def _effector_position(push: PushProblem, x) -> jax.Array:
-    sim, nq = push.sim, push.sim.model.nq
-    x = jnp.asarray(x)
-    if push.robot == "sphere":
-        p = sim.world.prim_qpos[0]
-        return jnp.asarray(sim.scene.primitives[0].pos) + x[p : p + 3]
-    k = mjx_kinematics(sim.mjx_model, sim.data.replace(qpos=x[:nq]))
-    return k.xpos[sim.model.body("panda_hand").id]
