@@ -9,7 +9,11 @@ Example:
     >>> dano.save_dano("ball.dano.npz", obj)
 """
 
-from dano import errors, fields
+from dano import (
+    _xla,  # noqa: F401  (first: sets XLA_FLAGS before JAX starts)
+    errors,
+    fields,
+)
 from dano.build import build_dano, field_from_source, scale_lengths
 from dano.errors import (
     DanoError,

@@ -1,47 +1,174 @@
-"""Mesh baseline: convex decomposition (CoACD, cached on disk) and a MuJoCo C model of the pieces."""
+"""The mesh path the paper argues against (Sec. VI): field -> level-set mesh -> convex pieces -> MuJoCo.
+
+Each step is a small function with its knobs exposed:
+`level_set_mesh` (marching cubes at a density level) -> `clean_mesh` (largest component, pymeshfix)
+-> `convex_decomposition` (CoACD or V-HACD, cached on disk) -> `mujoco_mesh_model` (MuJoCo C).
+`dano.baselines.compare` runs the same scenarios on these and on the DANO.
+"""
 
 import hashlib
 import json
+import threading
 from pathlib import Path
 
 import mujoco
 import numpy as np
 import trimesh
+from tqdm.auto import tqdm
 
+from dano.errors import MeshError
+from dano.fields import AbstractField
+from dano.fields.base import evaluate
+from dano.fields.grid import grid_nodes
 from dano.io import atomic_savez, load_npz
 
-CACHE = Path.home() / ".cache" / "dano" / "coacd"
+CACHE = Path.home() / ".cache" / "dano" / "convex"
+
+
+def level_set_mesh(field: AbstractField, level: float, resolution: int = 100) -> trimesh.Trimesh:
+    """The surface {phi = level} by marching cubes (scikit-image) on a grid over the field's box.
+
+    The grid is padded with one layer of zeros, so a surface that reaches the box (a floater at
+    the domain's edge) still closes. Faces are wound outward (positive volume).
+
+    Args:
+        level: the density level, in the field's own units.
+        resolution: grid nodes along the box's longest side (voxels are cubes).
+
+    Raises:
+        MeshError: no surface at that level (it is above the field's maximum or not positive).
+    """
+    from skimage.measure import marching_cubes
+
+    if not level > 0:
+        raise MeshError(f"the level must be a positive density, got {level}")
+    if resolution < 8:
+        raise MeshError(f"resolution must be >= 8, got {resolution}")
+    lo, hi = (np.asarray(b, dtype=float) for b in field.bounds)
+    h = float(np.max(hi - lo)) / (resolution - 1)
+    shape = tuple(int(np.ceil((hi[i] - lo[i]) / h)) + 1 for i in range(3))
+    nodes = grid_nodes((tuple(lo), tuple(lo + h * (np.asarray(shape) - 1))), shape)  # type: ignore[arg-type]
+    values = np.pad(evaluate(field, nodes.reshape(-1, 3)).reshape(shape), 1)
+    if not values.max() > level:
+        raise MeshError(f"no surface at level {level:g}: the field's densities are at most {values.max():g}")
+    verts, faces, _, _ = marching_cubes(values, level=level, spacing=(h, h, h))
+    mesh = trimesh.Trimesh(verts + lo - h, faces, process=True)
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def clean_mesh(mesh: trimesh.Trimesh, largest_component: bool = True, repair: bool = True) -> trimesh.Trimesh:
+    """The usual clean-up of a level-set mesh: keep the largest connected piece (drops floaters),
+    then make it watertight with pymeshfix.
+
+    Raises:
+        MeshError: nothing is left, or pymeshfix cannot close the mesh.
+    """
+    if largest_component:
+        parts = mesh.split(only_watertight=False)
+        if len(parts):
+            mesh = max(parts, key=lambda p: (p.is_watertight, abs(p.volume) if p.is_watertight else p.area))
+    if repair:
+        from dano.fields.mesh import repair_mesh
+
+        mesh = repair_mesh(mesh)
+    if len(mesh.faces) == 0:
+        raise MeshError("clean-up left an empty mesh")
+    return mesh
 
 
 def convex_decomposition(
-    mesh: trimesh.Trimesh, threshold: float = 0.05, max_hulls: int = -1, cache_dir: Path | None = CACHE
+    mesh: trimesh.Trimesh,
+    method: str = "coacd",
+    threshold: float = 0.05,
+    max_hulls: int = -1,
+    cache_dir: str | Path | None = CACHE,
+    progress: bool = True,
 ) -> list[trimesh.Trimesh]:
-    """CoACD convex pieces of a watertight mesh, cached by mesh hash and parameters.
+    """Convex pieces of a mesh by CoACD (default) or V-HACD (`vhacdx`), cached by mesh hash and parameters.
+
+    Decompositions are slow (CoACD takes minutes on a detailed mesh), so each result is kept in
+    `cache_dir` under a hash of the vertices, faces, method and parameters; a progress bar shows the
+    elapsed time while one runs.
 
     Args:
-        threshold: CoACD's concavity threshold (smaller: more, tighter pieces; slower).
-        max_hulls: cap on the number of pieces (-1: none).
+        method: "coacd" or "vhacd".
+        threshold: CoACD's concavity threshold (smaller: more, tighter pieces; slower). For V-HACD,
+            the allowed volume error in percent is `100 * threshold`.
+        max_hulls: cap on the number of pieces (-1: none for CoACD, 64 for V-HACD).
         cache_dir: where decompositions are kept (None: no cache).
+
+    Raises:
+        MeshError: an unknown method, an empty mesh, or a decomposition with no pieces.
     """
+    if method not in ("coacd", "vhacd"):
+        raise MeshError(f"method must be 'coacd' or 'vhacd', got {method!r}")
+    if len(mesh.faces) == 0:
+        raise MeshError("cannot decompose an empty mesh")
     key = hashlib.sha256(
         np.ascontiguousarray(mesh.vertices, dtype=np.float64).tobytes()
         + np.ascontiguousarray(mesh.faces, dtype=np.int64).tobytes()
-        + json.dumps({"threshold": threshold, "max_hulls": max_hulls}).encode()
+        + json.dumps({"method": method, "threshold": threshold, "max_hulls": max_hulls}).encode()
     ).hexdigest()[:24]
-    path = None if cache_dir is None else Path(cache_dir) / f"{key}.npz"
+    path = None if cache_dir is None else Path(cache_dir) / f"{method}-{key}.npz"
     if path is not None and path.is_file():
         data = load_npz(path)
         n = int(data["count"])
         return [trimesh.Trimesh(data[f"v{i}"], data[f"f{i}"]) for i in range(n)]
-    import coacd
-
-    coacd.set_log_level("error")
-    parts = coacd.run_coacd(coacd.Mesh(mesh.vertices, mesh.faces), threshold=threshold, max_convex_hull=max_hulls)
-    pieces = [trimesh.Trimesh(v, f) for v, f in parts]
+    with _elapsed(f"{method} on {len(mesh.faces)} faces", progress):
+        parts = _coacd(mesh, threshold, max_hulls) if method == "coacd" else _vhacd(mesh, threshold, max_hulls)
+    pieces = [trimesh.Trimesh(v, f) for v, f in parts if len(f)]
+    if not pieces:
+        raise MeshError(f"{method} returned no convex pieces")
     if path is not None:
         arrays = {f"v{i}": p.vertices for i, p in enumerate(pieces)} | {f"f{i}": p.faces for i, p in enumerate(pieces)}
         atomic_savez(path, count=np.int64(len(pieces)), **arrays)
     return pieces
+
+
+def _coacd(mesh: trimesh.Trimesh, threshold: float, max_hulls: int):
+    import coacd
+
+    coacd.set_log_level("error")
+    return coacd.run_coacd(coacd.Mesh(mesh.vertices, mesh.faces), threshold=threshold, max_convex_hull=max_hulls)
+
+
+def _vhacd(mesh: trimesh.Trimesh, threshold: float, max_hulls: int):
+    import vhacdx
+
+    return vhacdx.compute_vhacd(
+        np.ascontiguousarray(mesh.vertices, dtype=np.float64), np.ascontiguousarray(mesh.faces, dtype=np.uint32),
+        maxConvexHulls=64 if max_hulls < 1 else max_hulls, minimumVolumePercentErrorAllowed=100 * threshold,
+    )  # fmt: skip
+
+
+class _elapsed:
+    """A progress bar that shows the elapsed time while a blocking call runs."""
+
+    def __init__(self, what: str, enabled: bool):
+        self.what, self.enabled = what, enabled
+
+    def __enter__(self):
+        if not self.enabled:
+            return self
+        self.bar = tqdm(desc=self.what, bar_format="{desc}: {elapsed}")
+        self.done = threading.Event()
+
+        def tick():
+            while not self.done.wait(0.5):
+                self.bar.refresh()
+
+        self.thread = threading.Thread(target=tick, daemon=True)
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self.done.set()
+            self.thread.join()
+            self.bar.close()
+        return False
 
 
 def mujoco_mesh_model(
@@ -52,12 +179,15 @@ def mujoco_mesh_model(
     friction: float = 0.5,
     timestep: float = 0.002,
     ground: bool = True,
+    inertial: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> mujoco.MjModel:
     """A MuJoCo (C engine) model: one free body made of convex mesh geoms, on a ground plane.
 
-    Mass is `mass`, spread over the pieces by volume; MuJoCo computes the inertia from the meshes.
+    Mass is `mass`. Without `inertial`, it is spread over the pieces by volume and MuJoCo computes
+    the inertia from them; `inertial = (com (3,), inertia about the com (3, 3))`, body frame, sets
+    them explicitly (e.g. from the uncut mesh, which the pieces only approximate).
     """
-    return mujoco_mesh_spec(pieces, mass, pos, quat, friction, timestep, ground).compile()
+    return mujoco_mesh_spec(pieces, mass, pos, quat, friction, timestep, ground, inertial).compile()
 
 
 def mujoco_mesh_spec(
@@ -68,8 +198,11 @@ def mujoco_mesh_spec(
     friction: float = 0.5,
     timestep: float = 0.002,
     ground: bool = True,
+    inertial: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> mujoco.MjSpec:
     """The uncompiled `mujoco_mesh_model`, for adding more to the scene (the body is "object")."""
+    if not mass > 0:
+        raise MeshError(f"mass must be positive, got {mass}")
     spec = mujoco.MjSpec()
     spec.option.timestep = timestep
     if ground:
@@ -77,8 +210,13 @@ def mujoco_mesh_spec(
     body = spec.worldbody.add_body(name="object", pos=list(pos), quat=list(quat))
     body.add_freejoint()
     density = mass / sum(p.volume for p in pieces)
+    if inertial is not None:
+        com, inertia = (np.asarray(v, dtype=float) for v in inertial)
+        body.explicitinertial = True
+        body.mass, body.ipos = mass, com.tolist()
+        body.fullinertia = [inertia[0, 0], inertia[1, 1], inertia[2, 2], inertia[0, 1], inertia[0, 2], inertia[1, 2]]
     for i, p in enumerate(pieces):
         spec.add_mesh(name=f"piece{i}", uservert=p.vertices.ravel().tolist(), userface=p.faces.ravel().tolist())
-        body.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"piece{i}", density=density,
-                      friction=[friction, 0.005, 0.0001])  # fmt: skip
+        body.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"piece{i}", friction=[friction, 0.005, 0.0001],
+                      density=0.0 if inertial is not None else density)  # fmt: skip
     return spec

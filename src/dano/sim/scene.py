@@ -107,6 +107,9 @@ class Robot:
         kp, kv: position servo gains per joint (N m/rad, N m s/rad).
         gravity_compensation: cancel gravity on the robot's links (as a torque-controlled arm would).
         package_dirs: {package name: folder} for `package://name/...` paths.
+        contact_bodies: names of the links whose geoms touch DANOs (empty: all). Each contact pair
+            is code in the compiled step, so leaving out links that cannot reach the objects keeps
+            compile times down (most of all for `jax.jacfwd` of long rollouts).
     """
 
     path: str
@@ -117,6 +120,7 @@ class Robot:
     kv: Number = 30.0
     gravity_compensation: bool = True
     package_dirs: tuple[tuple[str, str], ...] = ()
+    contact_bodies: tuple[str, ...] = ()
 
 
 def panda(base_pos: Vec3 = (0.0, 0.0, 0.0), qpos: tuple[Number, ...] = (), **kwargs) -> Robot:
@@ -405,7 +409,11 @@ def compile_scene(scene: Scene):
     def jnt(name):  # the free joint of a body, or the first slide of an actuated primitive
         return joints.get(f"{name}_slidex", joints.get(f"{name}_free"))
 
-    links = tuple(_link_geom(model, g) for g in _robot_geoms(model, robot_bodies))
+    if scene.robot is not None and scene.robot.contact_bodies:
+        unknown = sorted(set(scene.robot.contact_bodies) - set(robot_bodies))
+        if unknown:
+            raise SceneError(f"contact_bodies {unknown} are not bodies of the robot (it has {robot_bodies})")
+    links = tuple(_link_geom(model, g) for g in _robot_geoms(model, robot_bodies, scene.robot))
     danos = tuple(
         DanoState(
             points=jnp.asarray(b.dano.body_points.T),
@@ -483,12 +491,16 @@ def _prepare_robot(spec: mujoco.MjSpec, robot: Robot) -> list[str]:
     return bodies
 
 
-def _robot_geoms(model: mujoco.MjModel, bodies: list[str]) -> list[int]:
-    """The robot's geoms, with MuJoCo's own collisions switched off: DANOs see them instead."""
+def _robot_geoms(model: mujoco.MjModel, bodies: list[str], robot: Robot | None) -> list[int]:
+    """The robot's geoms that touch DANOs (`robot.contact_bodies`, else all), with MuJoCo's own
+    collisions switched off for every robot geom: DANOs see them instead."""
     ids = {model.body(name).id for name in bodies}
     geoms = [g for g in range(model.ngeom) if model.geom_bodyid[g] in ids]
     for g in geoms:
         model.geom_contype[g] = model.geom_conaffinity[g] = 0
+    if robot is not None and robot.contact_bodies:
+        touching = {model.body(name).id for name in robot.contact_bodies}
+        geoms = [g for g in geoms if model.geom_bodyid[g] in touching]
     return geoms
 
 

@@ -29,11 +29,10 @@ from dano.sim.step import mjx_kinematics, scaled_model, step
 from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, solve
 from dano.types import DANO
 
-PANDA_HOME = (0.0, 0.7, 0.0, -2.0, 0.0, 2.6, 0.785, 0.02, 0.02)
-"""Panda joints with the hand about 3 cm above the floor, 0.58 m in front of the base."""
+PANDA_HOME = (0.0, 0.614, 0.0, -2.073, 0.0, 2.686, 0.785, 0.02, 0.02)
+"""Panda joints with the hand pointing down 0.58 m in front of the base, fingertips 1.5 cm above the floor."""
 PANDA_TORQUE = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 """The Panda's joint torque limits, N m (Franka's datasheet)."""
-PANDA_TIPS = ("panda_leftfinger", "panda_rightfinger")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,7 +176,8 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         direction_xy = goal / np.linalg.norm(goal)
         scales = np.linspace(0.5, task.force_limit, 16)
     else:
-        tips = [model.body(name).id for name in PANDA_TIPS]
+        boxes = [link for link in sim.world.links if link.kind == "box"]  # the fingers
+        box_geoms, box_sizes = jnp.asarray([b.geom for b in boxes]), jnp.asarray([b.size for b in boxes])
         hand = model.body("panda_hand").id
         kp, kv = sim.scene.robot.kp, sim.scene.robot.kv
         lo, hi = (jnp.asarray(model.jnt_range[:7, i]) for i in (0, 1))
@@ -190,9 +190,10 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         def effector(x):  # the hand's position; its speed enters through the joint velocities
             return kinematics(x).xpos[hand], x[nq : nq + 7]
 
-        def lowest(x):  # the fingertips: 5.4 cm along each finger's z
+        def lowest(x):  # each finger box's lowest corner (|.| smoothed: the boxes start upright)
             k = kinematics(x)
-            return k.xpos[jnp.asarray(tips), 2] + k.xmat[jnp.asarray(tips), 2, 2] * 0.054
+            up = k.geom_xmat[box_geoms].reshape(-1, 3, 3)[:, 2, :]
+            return k.geom_xpos[box_geoms, 2] - jnp.sum(jnp.sqrt(up**2 + 1e-6) * box_sizes, axis=1)
 
         def input_limits(x, u):
             torque = kp * (u - x[:7]) - kv * x[nq : nq + 7]

@@ -1,0 +1,296 @@
+"""DANO against the mesh path, measured (paper Sec. VI, Fig. 8).
+
+Every collision model of one object (a level-set mesh per density level, the DANO, and the truth
+when there is one) goes through the same scenarios:
+
+- drop: released at rest, level, its field frame 2 cm above where the truth rests, for `drop_s`;
+  the rest pose is where it ends.
+- slide: from that rest pose, launched along +x at `slide_speed`, for `slide_s`.
+
+Meshes run in MuJoCo's C engine (convex pieces, mass and inertia from the uncut mesh); the DANO in
+dano's simulator (MJX + the probabilistic contact). Poses are of the field's own frame, so all
+models are compared in one frame. Mass is compared at equal density: a mesh's volume against
+the truth's, and the DANO's `mass / (alpha * peak)` (its volume-equivalent).
+"""
+
+import dataclasses
+import time
+
+import mujoco
+import numpy as np
+import trimesh
+
+from dano.baselines.mesh import CACHE, clean_mesh, convex_decomposition, level_set_mesh, mujoco_mesh_model
+from dano.errors import DanoError
+from dano.fields import AbstractField
+from dano.types import DANO
+
+
+class CompareError(DanoError, ValueError):
+    """Bad input to the comparison (no levels, a level with no surface, a bad scenario)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Scenarios:
+    """What every model goes through (times in s, speeds in m/s, friction coefficient)."""
+
+    friction: float = 0.5
+    drop_height: float = 0.02
+    drop_s: float = 1.0
+    slide_speed: float = 0.5
+    slide_s: float = 1.0
+    timestep: float = 0.002
+
+
+@dataclasses.dataclass(frozen=True)
+class Model:
+    """One collision model of the object.
+
+    Attributes:
+        label: e.g. "level 3", "DANO", "truth".
+        volume: m^3 (for the DANO, mass / (alpha * peak)).
+        com: (3,) centre of mass, field frame, m.
+        inertia_per_mass: (3, 3) inertia about the centre of mass divided by the mass, m^2.
+        mesh: the level-set (or true) mesh, for the figure; None for the DANO.
+        pieces: its convex pieces (MuJoCo's colliders); None for the DANO.
+        dano: the DANO; None for meshes.
+        preprocess_s: seconds to make it from the field (marching cubes, clean-up, decomposition;
+            for the DANO, `build_dano`), as measured by the caller or here.
+    """
+
+    label: str
+    volume: float
+    com: np.ndarray
+    inertia_per_mass: np.ndarray
+    mesh: trimesh.Trimesh | None = None
+    pieces: list | None = None
+    dano: DANO | None = None
+    preprocess_s: float = 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """A model's scenarios: poses of the field frame (x, y, z, qw, qx, qy, qz) and timing."""
+
+    rest: np.ndarray
+    slide_end: np.ndarray
+    sim_s: float
+
+    @property
+    def tilt_deg(self) -> float:
+        """Angle of the rest orientation from the release orientation (level), degrees."""
+        return _angle_deg(self.rest[3:], np.array([1.0, 0.0, 0.0, 0.0]))
+
+    @property
+    def slide_m(self) -> float:
+        """Horizontal distance the field frame travelled in the slide, m."""
+        return float(np.linalg.norm(self.slide_end[:2] - self.rest[:2]))
+
+
+def mesh_model(
+    label: str,
+    mesh: trimesh.Trimesh,
+    decomposition: str = "coacd",
+    threshold: float = 0.05,
+    max_hulls: int = -1,
+    cache_dir=CACHE,
+    progress: bool = True,
+    preprocess_s: float = 0.0,
+) -> Model:
+    """A mesh as a collision model: convex pieces (the mesh itself if convex), its own mass properties."""
+    start = time.perf_counter()
+    if mesh.is_convex:
+        pieces = [mesh]
+    else:
+        pieces = convex_decomposition(mesh, decomposition, threshold, max_hulls, cache_dir, progress)  # type: ignore[arg-type]
+    volume = float(mesh.volume)
+    if not volume > 0:
+        raise CompareError(f"{label}: the mesh has no volume ({volume:g} m^3); is it closed?")
+    com = np.asarray(mesh.center_mass, dtype=float)
+    inertia = np.asarray(mesh.moment_inertia, dtype=float) / volume  # trimesh: unit density, about the com
+    return Model(label, volume, com, inertia, mesh, pieces, None, preprocess_s + time.perf_counter() - start)
+
+
+def dano_model(label: str, dano: DANO, preprocess_s: float = 0.0) -> Model:
+    """A DANO as a collision model (its volume-equivalent is mass / (alpha * peak))."""
+    if dano.peak is None:
+        raise CompareError("the DANO has no peak density, so its volume cannot be compared; rebuild it")
+    mass = float(dano.mass)
+    volume = mass / (float(dano.alpha) * float(dano.peak))
+    return Model(label, volume, np.asarray(dano.com), np.asarray(dano.inertia) / mass, None, None, dano, preprocess_s)
+
+
+def level_set_models(
+    field: AbstractField,
+    levels: list[float],
+    resolution: int = 100,
+    clean: bool = False,
+    decomposition: str = "coacd",
+    threshold: float = 0.05,
+    max_hulls: int = -1,
+    cache_dir=CACHE,
+    progress: bool = True,
+) -> list[Model]:
+    """One mesh model per density level: marching cubes, optional clean-up, convex decomposition."""
+    if not levels:
+        raise CompareError("give at least one density level")
+    models = []
+    for level in levels:
+        start = time.perf_counter()
+        mesh = level_set_mesh(field, level, resolution)
+        if clean:
+            mesh = clean_mesh(mesh)
+        elapsed = time.perf_counter() - start
+        models.append(
+            mesh_model(f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress, elapsed)
+        )
+    return models
+
+
+def release_height(reference: Model, scenarios: Scenarios) -> float:
+    """Height of the field frame's origin that puts `reference`'s lowest point `drop_height` above z = 0."""
+    if reference.mesh is not None:
+        low = float(reference.mesh.bounds[0, 2])
+    else:
+        low = float(np.min(np.asarray(reference.dano.points)[:, 2]))  # type: ignore[union-attr]
+    return scenarios.drop_height - low
+
+
+def simulate(model: Model, height: float, scenarios: Scenarios = Scenarios()) -> Outcome:
+    """Runs the drop and the slide for one model (MuJoCo C for meshes, dano's simulator for the DANO)."""
+    start = time.perf_counter()
+    rest, end = (_simulate_dano if model.dano is not None else _simulate_mesh)(model, height, scenarios)
+    return Outcome(rest, end, time.perf_counter() - start)
+
+
+def _simulate_mesh(model: Model, height: float, s: Scenarios) -> tuple[np.ndarray, np.ndarray]:
+    m = mujoco_mesh_model(
+        model.pieces,  # type: ignore[arg-type]
+        mass=1.0,
+        pos=(0.0, 0.0, height),
+        friction=s.friction,
+        timestep=s.timestep,
+        inertial=(model.com, model.inertia_per_mass),
+    )
+    d = mujoco.MjData(m)
+    mujoco.mj_step(m, d, nstep=int(round(s.drop_s / s.timestep)))
+    rest = np.array(d.qpos[:7])
+    d.qvel[:] = 0.0
+    d.qvel[0] = s.slide_speed
+    mujoco.mj_step(m, d, nstep=int(round(s.slide_s / s.timestep)))
+    if not np.all(np.isfinite(d.qpos)):
+        raise CompareError(f"{model.label}: MuJoCo's state became non-finite")
+    return rest, np.array(d.qpos[:7])
+
+
+def _simulate_dano(model: Model, height: float, s: Scenarios) -> tuple[np.ndarray, np.ndarray]:
+    from dano.contact import ContactParams
+    from dano.sim.run import Simulation, body_poses, check_trajectory
+    from dano.sim.scene import DanoBody, Scene
+
+    dano = model.dano
+    com = np.asarray(dano.com)  # type: ignore[union-attr]
+
+    def run(pos, quat, vel, seconds):
+        body = DanoBody("object", dano, pos=tuple(pos), quat=tuple(quat), vel=tuple(vel))  # type: ignore[arg-type]
+        scene = Scene(
+            bodies=(body,), contact=ContactParams(sliding_friction=s.friction), timestep=s.timestep, duration=seconds
+        )
+        sim = Simulation.from_scene(scene)
+        traj = sim.run()
+        check_trajectory(traj, sim.scene)
+        return body_poses(traj, sim)["object"][-1]
+
+    rest_com = run((com[0], com[1], com[2] + height), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), s.drop_s)
+    end_com = run(rest_com[:3], rest_com[3:], (s.slide_speed, 0.0, 0.0), s.slide_s)
+    return _com_to_frame(rest_com, com), _com_to_frame(end_com, com)
+
+
+def _com_to_frame(pose: np.ndarray, com: np.ndarray) -> np.ndarray:
+    """Pose of the centre of mass -> pose of the field frame (same orientation)."""
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, pose[3:])
+    return np.concatenate([pose[:3] - rot.reshape(3, 3) @ com, pose[3:]])
+
+
+def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
+    dot = abs(float(np.dot(q1 / np.linalg.norm(q1), q2 / np.linalg.norm(q2))))
+    return float(np.degrees(2 * np.arccos(min(1.0, dot))))
+
+
+def report(
+    models: list[Model], outcomes: list[Outcome], truth: Model | None, truth_outcome: Outcome | None
+) -> list[dict]:
+    """One row per model: mass/inertia errors against the truth, rest and slide, pose differences, times."""
+    rows = []
+    for model, out in zip(models, outcomes, strict=True):
+        row = {
+            "model": model.label,
+            "pieces": None if model.pieces is None else len(model.pieces),
+            "rest_tilt_deg": out.tilt_deg,
+            "rest_height_m": float(out.rest[2]),
+            "slide_m": out.slide_m,
+            "preprocess_s": model.preprocess_s,
+            "sim_s": out.sim_s,
+        }
+        if truth is not None and truth_outcome is not None:
+            t = truth.inertia_per_mass
+            row |= {
+                "mass_error": model.volume / truth.volume - 1.0,
+                "com_error_m": float(np.linalg.norm(model.com - truth.com)),
+                "inertia_error": float(np.linalg.norm(model.inertia_per_mass - t) / np.linalg.norm(t)),
+                "rest_position_diff_m": float(np.linalg.norm(out.rest[:3] - truth_outcome.rest[:3])),
+                "rest_angle_diff_deg": _angle_deg(out.rest[3:], truth_outcome.rest[3:]),
+                "slide_end_diff_m": float(np.linalg.norm(out.slide_end[:3] - truth_outcome.slide_end[:3])),
+                "slide_angle_diff_deg": _angle_deg(out.slide_end[3:], truth_outcome.slide_end[3:]),
+            }
+        rows.append(row)
+    return rows
+
+
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+    """Everything `compare` measured: the models, their outcomes, the truth, and the table."""
+
+    models: list[Model]
+    outcomes: list[Outcome]
+    truth: Model | None
+    truth_outcome: Outcome | None
+    rows: list[dict]
+
+
+def compare(models: list[Model], truth: Model | None = None, scenarios: Scenarios = Scenarios()) -> Comparison:
+    """Runs every model (and the truth) through the scenarios and tabulates the differences.
+
+    The release height is set by the truth (else the last model), so all start at one height.
+    """
+    if not models:
+        raise CompareError("nothing to compare")
+    height = release_height(truth if truth is not None else models[-1], scenarios)
+    outcomes = [simulate(m, height, scenarios) for m in models]
+    truth_outcome = None if truth is None else simulate(truth, height, scenarios)
+    return Comparison(models, outcomes, truth, truth_outcome, report(models, outcomes, truth, truth_outcome))
+
+
+def format_table(rows: list[dict]) -> str:
+    """The comparison as a fixed-width text table."""
+    columns = [
+        ("model", "model", "{}"), ("pieces", "pieces", "{}"), ("mass_error", "mass err", "{:+.1%}"),
+        ("inertia_error", "inertia err", "{:.1%}"), ("com_error_m", "com err mm", "{:.1f}"),
+        ("rest_tilt_deg", "tilt deg", "{:.1f}"), ("rest_height_m", "rest z mm", "{:.1f}"),
+        ("slide_m", "slide mm", "{:.1f}"), ("rest_position_diff_m", "rest dpos mm", "{:.1f}"),
+        ("rest_angle_diff_deg", "rest dang deg", "{:.1f}"), ("slide_end_diff_m", "slide dpos mm", "{:.1f}"),
+        ("preprocess_s", "prep s", "{:.1f}"), ("sim_s", "sim s", "{:.1f}"),
+    ]  # fmt: skip
+    scale = {"com_error_m", "rest_height_m", "slide_m", "rest_position_diff_m", "slide_end_diff_m"}
+    present = [c for c in columns if any(c[0] in r for r in rows)]
+    cells = [[h for _, h, _ in present]]
+    for r in rows:
+        line = []
+        for key, _, fmt in present:
+            v = r.get(key)
+            line.append("-" if v is None else fmt.format(v * 1e3 if key in scale else v))
+        cells.append(line)
+    widths = [max(len(row[i]) for row in cells) for i in range(len(present))]
+    pad = [[c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))] for r in cells]
+    return "\n".join("  ".join(r) for r in pad)
