@@ -199,6 +199,74 @@ def _demo(args: argparse.Namespace) -> None:
     run_demo(args.out, resolution=args.resolution, seed=args.seed, simulate=not args.no_sim)
 
 
+def _compare(args: argparse.Namespace) -> None:
+    from dano.baselines import compare as C
+
+    scenarios = C.Scenarios(friction=args.friction, drop_s=args.drop_seconds, slide_speed=args.slide_speed)
+    knobs = {"decomposition": args.decomposition, "threshold": args.threshold, "max_hulls": args.max_hulls}
+    if args.source in C.REFERENCE_LEVELS and not _exists(args.source):
+        if args.data_dir is None:
+            raise C.CompareError(f"{args.source} is reference data: give --data-dir (the folder with colliders/)")
+        models, dano_model = C.reference_models(args.source, args.data_dir, **knobs)
+        models.append(dano_model)
+        truth = dano_model  # no better truth for a scanned object: the authors' own DANO
+    else:
+        models, truth = _field_models(args, knobs)
+    result = C.compare(models, truth, scenarios)
+    if args.plot:
+        from dano.plotting import plot_rests
+
+        plot_rests(result, args.plot, title=f"{args.source}: at rest after {scenarios.drop_s:g} s")
+    if args.json:
+        print(json.dumps({"source": args.source, "truth": None if truth is None else truth.label, "rows": result.rows}))
+    else:
+        print(f"{args.source}: against {'no truth' if truth is None else truth.label}")
+        print(C.format_table(result.rows))
+        if args.plot:
+            print(f"wrote {args.plot}")
+
+
+def _exists(path: str) -> bool:
+    from pathlib import Path
+
+    return Path(path).exists()
+
+
+def _field_models(args: argparse.Namespace, knobs: dict):
+    import time
+
+    from dano.baselines import compare as C
+    from dano.build import build_dano, field_from_source
+    from dano.fields import MESH_SUFFIXES, load_mesh, mesh_field
+    from dano.surface import field_peak
+    from dano.types import DANO
+
+    truth = None
+    if args.source.lower().endswith(MESH_SUFFIXES):
+        mesh = load_mesh(args.source, repair=args.repair)
+        truth = C.mesh_model("truth (mesh)", mesh, progress=True, **knobs)
+        field = mesh_field(mesh, resolution=args.resolution)
+    else:
+        field = field_from_source(args.source, resolution=args.resolution)
+        if isinstance(field, DANO):
+            raise C.CompareError("compare needs the field the DANO comes from (a mesh, grid, checkpoint or spec)")
+    levels = _parse_levels(args.levels, field_peak(field, args.seed))
+    models = C.level_set_models(field, levels, args.resolution, clean=args.clean, **knobs)
+    start = time.perf_counter()
+    dano = build_dano(field, n_points=args.points, seed=args.seed)
+    models.append(C.dano_model("DANO", dano, time.perf_counter() - start))
+    return models, truth
+
+
+def _parse_levels(text: str | None, peak: float) -> list[float]:
+    if text is None:
+        return [0.03 * peak, 0.5 * peak, 0.95 * peak]
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise DanoError(f"--levels takes comma-separated densities, got {text!r}") from None
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dano", description="Dynamics-Augmented Neural Objects")
     sub = p.add_subparsers(dest="command", required=True)
@@ -265,6 +333,26 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--json", action="store_true",
                    help="one JSON object (final_error_m, iterations, seconds, max_violation, ...)")  # fmt: skip
     t.set_defaults(run=_trajopt)
+
+    c = sub.add_parser("compare", help="the mesh path (level sets, convex pieces, MuJoCo) against the DANO, measured")
+    c.add_argument("source", help="a mesh file (also the truth), a field (grid or neural .npz, spec), or reference "
+                   "data: bluesoap, halfsoap or bunny with --data-dir")  # fmt: skip
+    c.add_argument("--levels", help="density levels a,b,c (default 3%%, 50%%, 95%% of the field's peak)")
+    c.add_argument("--data-dir", help="the reference data folder (with colliders/ and meshes/)")
+    c.add_argument("--resolution", type=int, default=100, help="grid nodes along the longest side (default 100)")
+    c.add_argument("--clean", action="store_true", help="keep each level set's largest component, repair it")
+    c.add_argument("--repair", action="store_true", help="make a non-watertight source mesh watertight")
+    c.add_argument("--decomposition", choices=["coacd", "vhacd"], default="coacd")
+    c.add_argument("--threshold", type=float, default=0.05, help="CoACD concavity (V-HACD: volume error / 100)")
+    c.add_argument("--max-hulls", type=int, default=-1, help="cap on convex pieces (-1: none)")
+    c.add_argument("--points", type=int, default=3000, help="DANO surface points (default 3000)")
+    c.add_argument("--friction", type=float, default=0.5)
+    c.add_argument("--drop-seconds", type=float, default=1.0, help="settling time after the drop (default 1)")
+    c.add_argument("--slide-speed", type=float, default=0.5, help="m/s (default 0.5)")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--plot", help="PNG of every model at rest on the floor (the paper's Fig. 8)")
+    c.add_argument("--json", action="store_true", help='one JSON object {"source", "truth", "rows": [...]}')
+    c.set_defaults(run=_compare)
 
     d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
     d.add_argument("--out", default="dano-demo", help="output folder (default dano-demo)")

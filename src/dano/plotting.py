@@ -89,3 +89,44 @@ def plot_identification(problem, result, path: str | Path, max_windows: int = 6)
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_rests(comparison, path: str | Path, title: str = "") -> Path:
+    """Fig. 8 of the paper, measured: each model at its rest pose on the floor, seen from the side
+    (x-z) and from the front (y-z): level-set meshes as their faces, the DANO as its points."""
+    import jax.numpy as jnp
+
+    from dano.math import quat_to_mat
+
+    entries = list(zip(comparison.models, comparison.outcomes, strict=True))
+    if comparison.truth is not None and all(m is not comparison.truth for m in comparison.models):
+        entries.append((comparison.truth, comparison.truth_outcome))
+    fig, axes = plt.subplots(2, len(entries), figsize=(3.2 * len(entries), 5.6), squeeze=False)
+    for k, (model, outcome) in enumerate(entries):
+        rot = np.asarray(quat_to_mat(jnp.asarray(outcome.rest[3:])))
+        for row, (a, b) in enumerate([(0, 2), (1, 2)]):
+            ax = axes[row, k]
+            if model.mesh is not None:
+                v = np.asarray(model.mesh.vertices) @ rot.T + outcome.rest[:3]
+                tris = v[np.asarray(model.mesh.faces)][:, :, [a, b]]
+                from matplotlib.collections import PolyCollection
+
+                ax.add_collection(PolyCollection(tris, facecolor="tab:blue", edgecolor="none", alpha=0.05))
+            else:
+                p = np.asarray(model.dano.points) @ rot.T + outcome.rest[:3]
+                ax.scatter(p[:, a], p[:, b], s=0.5, color="tab:orange")
+            ax.axhline(0.0, color="black", linewidth=1.0)
+            ax.autoscale_view()
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.set_xlabel("xyz"[a] + " [m]")
+            if k == 0:
+                ax.set_ylabel("z [m]")
+        label = f"{model.label}\ntilt {outcome.tilt_deg:.1f} deg, z {outcome.rest[2] * 1e3:.0f} mm"
+        axes[0, k].set_title(label, fontsize=9)
+    fig.suptitle(title or "At rest on the floor: level-set meshes (MuJoCo) and the DANO")
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_write(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=110)
+    plt.close(fig)
+    return path

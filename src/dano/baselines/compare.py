@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 import trimesh
 
-from dano.baselines.mesh import CACHE, clean_mesh, convex_decomposition, level_set_mesh, mujoco_mesh_model
+from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, mujoco_mesh_model
 from dano.errors import DanoError
 from dano.fields import AbstractField
 from dano.types import DANO
@@ -97,18 +97,19 @@ def mesh_model(
     progress: bool = True,
     preprocess_s: float = 0.0,
 ) -> Model:
-    """A mesh as a collision model: convex pieces (the mesh itself if convex), its own mass properties."""
-    start = time.perf_counter()
+    """A mesh as a collision model: convex pieces (the mesh itself if convex), and the mass properties
+    of the mesh (of the pieces when the mesh is not watertight, e.g. a NeRF level set with holes)."""
     if mesh.is_convex:
-        pieces = [mesh]
+        pieces, seconds = [mesh], 0.0
     else:
-        pieces = convex_decomposition(mesh, decomposition, threshold, max_hulls, cache_dir, progress)  # type: ignore[arg-type]
+        pieces, seconds = decompose(mesh, decomposition, threshold, max_hulls, cache_dir, progress)
+    elapsed = preprocess_s + seconds  # the decomposition's own time, also when it came from the cache
+    if not mesh.is_watertight:  # no inside to integrate: the pieces' mass properties, as MuJoCo's own
+        return _pieces_model(label, mesh, pieces, elapsed)
     volume = float(mesh.volume)
-    if not volume > 0:
-        raise CompareError(f"{label}: the mesh has no volume ({volume:g} m^3); is it closed?")
     com = np.asarray(mesh.center_mass, dtype=float)
     inertia = np.asarray(mesh.moment_inertia, dtype=float) / volume  # trimesh: unit density, about the com
-    return Model(label, volume, com, inertia, mesh, pieces, None, preprocess_s + time.perf_counter() - start)
+    return Model(label, volume, com, inertia, mesh, pieces, None, elapsed)
 
 
 def dano_model(label: str, dano: DANO, preprocess_s: float = 0.0) -> Model:
@@ -244,7 +245,7 @@ def report(
                 "slide_end_diff_m": float(np.linalg.norm(out.slide_end[:3] - truth_outcome.slide_end[:3])),
                 "slide_angle_diff_deg": _angle_deg(out.slide_end[3:], truth_outcome.slide_end[3:]),
             }
-        rows.append(row)
+        rows.append({k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in row.items()})
     return rows
 
 
@@ -263,12 +264,17 @@ def compare(models: list[Model], truth: Model | None = None, scenarios: Scenario
     """Runs every model (and the truth) through the scenarios and tabulates the differences.
 
     The release height is set by the truth (else the last model), so all start at one height.
+    `truth` may be one of `models` (e.g. the reference DANO when there is no better truth).
     """
     if not models:
         raise CompareError("nothing to compare")
     height = release_height(truth if truth is not None else models[-1], scenarios)
     outcomes = [simulate(m, height, scenarios) for m in models]
-    truth_outcome = None if truth is None else simulate(truth, height, scenarios)
+    if truth is None:
+        truth_outcome = None
+    else:  # the truth may be one of the models (the reference DANO): simulate it once
+        same = [o for m, o in zip(models, outcomes, strict=True) if m is truth]
+        truth_outcome = same[0] if same else simulate(truth, height, scenarios)
     return Comparison(models, outcomes, truth, truth_outcome, report(models, outcomes, truth, truth_outcome))
 
 
@@ -294,3 +300,99 @@ def format_table(rows: list[dict]) -> str:
     widths = [max(len(row[i]) for row in cells) for i in range(len(present))]
     pad = [[c.rjust(w) if i else c.ljust(w) for i, (c, w) in enumerate(zip(r, widths, strict=True))] for r in cells]
     return "\n".join("  ".join(r) for r in pad)
+
+
+REFERENCE_LEVELS = {
+    "bluesoap": {3.0: "levelsets/bluesoap_level_3_decomposed.obj", 70.0: "levelsets/bluesoap_level_70.stl",
+                 100.0: "levelsets/bluesoap_level_100.obj"},
+    "halfsoap": {20.0: "halfsoap_low.obj", 40.0: "halfsoap_high.obj"},
+    "bunny": {10.0: "levelsets/bunny_level_10.obj", 100.0: "levelsets/bunny_level_100.obj",
+              200.0: "levelsets/bunny_level_200.obj"},
+}  # fmt: skip
+"""The authors' level-set meshes per reference object (paths under `shared/data/dojo/meshes`, collider
+frame; see its README): raw density level -> file. Files named `*_decomposed.obj` are convex pieces
+already (one `o` group each)."""
+
+
+def reference_models(
+    name: str,
+    data_dir,
+    max_faces: int = 10000,
+    decomposition: str = "coacd",
+    threshold: float = 0.05,
+    max_hulls: int = -1,
+    cache_dir=CACHE,
+    progress: bool = True,
+) -> tuple[list[Model], Model]:
+    """The authors' level-set meshes of a reference object as mesh models, and its DANO collider.
+
+    Meshes are welded, wound outward, decimated to `max_faces` (quadric decimation) and decomposed;
+    the authors' own decomposition is used where they give one.
+
+    Raises:
+        CompareError: an unknown name or a missing file.
+    """
+    from pathlib import Path
+
+    from dano.reference import load_reference
+
+    if name not in REFERENCE_LEVELS:
+        raise CompareError(f"no reference level sets for {name!r}; known: {sorted(REFERENCE_LEVELS)}")
+    root = Path(data_dir)
+    collider = root / "colliders" / f"{name}_collider.npz"
+    if not collider.is_file():
+        raise CompareError(f"{collider} not found: --data-dir must be the folder with colliders/ and meshes/")
+    models = []
+    for level, rel in REFERENCE_LEVELS[name].items():
+        path = root / "meshes" / rel
+        if not path.is_file():
+            raise CompareError(f"{path} not found")
+        start = time.perf_counter()
+        if path.stem.endswith("_decomposed"):
+            pieces = _obj_groups(path)
+            whole = trimesh.util.concatenate(pieces)
+            models.append(_pieces_model(f"level {level:g}", whole, pieces, time.perf_counter() - start))
+            continue
+        mesh = _outward(trimesh.load(path, force="mesh", process=True))
+        mesh.merge_vertices()
+        if len(mesh.faces) > max_faces:
+            mesh = mesh.simplify_quadric_decimation(face_count=max_faces)
+        models.append(mesh_model(f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress,
+                                 time.perf_counter() - start))  # fmt: skip
+    return models, dano_model_without_peak("DANO (authors')", load_reference(collider))
+
+
+def _obj_groups(path) -> list[trimesh.Trimesh]:
+    """The `o` groups of an OBJ file as separate meshes, each its vertices' convex hull (wound outward)."""
+    groups: list[list[list[float]]] = []
+    for line in open(path, encoding="utf-8"):
+        if line.startswith("o "):
+            groups.append([])
+        elif line.startswith("v ") and groups:
+            groups[-1].append([float(v) for v in line.split()[1:4]])
+    if not groups:
+        raise CompareError(f"{path}: no 'o' groups (convex pieces) in the file")
+    return [trimesh.convex.convex_hull(np.asarray(g)) for g in groups if len(g) >= 4]
+
+
+def _outward(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def _pieces_model(label: str, whole: trimesh.Trimesh, pieces: list, preprocess_s: float) -> Model:
+    """Mass properties of a set of convex pieces, summed piece by piece (they barely overlap)."""
+    volumes = np.array([p.volume for p in pieces])
+    com = sum(v * p.center_mass for v, p in zip(volumes, pieces, strict=True)) / volumes.sum()
+    inertia = np.zeros((3, 3))
+    for v, p in zip(volumes, pieces, strict=True):
+        r = p.center_mass - com
+        inertia += p.moment_inertia + v * (r @ r * np.eye(3) - np.outer(r, r))
+    return Model(label, float(volumes.sum()), com, inertia / volumes.sum(), whole, pieces, None, preprocess_s)
+
+
+def dano_model_without_peak(label: str, dano: DANO) -> Model:
+    """A DANO whose field peak is unknown (the authors' colliders): its volume is left undefined (nan)."""
+    mass = float(dano.mass)
+    return Model(label, float("nan"), np.asarray(dano.com), np.asarray(dano.inertia) / mass, None, None, dano, 0.0)

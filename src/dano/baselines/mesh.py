@@ -8,7 +8,9 @@ Each step is a small function with its knobs exposed:
 
 import hashlib
 import json
+import sys
 import threading
+import time
 from pathlib import Path
 
 import mujoco
@@ -102,6 +104,18 @@ def convex_decomposition(
     Raises:
         MeshError: an unknown method, an empty mesh, or a decomposition with no pieces.
     """
+    return decompose(mesh, method, threshold, max_hulls, cache_dir, progress)[0]
+
+
+def decompose(
+    mesh: trimesh.Trimesh,
+    method: str = "coacd",
+    threshold: float = 0.05,
+    max_hulls: int = -1,
+    cache_dir: str | Path | None = CACHE,
+    progress: bool = True,
+) -> tuple[list[trimesh.Trimesh], float]:
+    """`convex_decomposition` and the seconds the decomposition took (when it ran, also on a cache hit)."""
     if method not in ("coacd", "vhacd"):
         raise MeshError(f"method must be 'coacd' or 'vhacd', got {method!r}")
     if len(mesh.faces) == 0:
@@ -115,16 +129,18 @@ def convex_decomposition(
     if path is not None and path.is_file():
         data = load_npz(path)
         n = int(data["count"])
-        return [trimesh.Trimesh(data[f"v{i}"], data[f"f{i}"]) for i in range(n)]
+        return [trimesh.Trimesh(data[f"v{i}"], data[f"f{i}"]) for i in range(n)], float(data.get("seconds", np.nan))
+    start = time.perf_counter()
     with _elapsed(f"{method} on {len(mesh.faces)} faces", progress):
         parts = _coacd(mesh, threshold, max_hulls) if method == "coacd" else _vhacd(mesh, threshold, max_hulls)
+    seconds = time.perf_counter() - start
     pieces = [trimesh.Trimesh(v, f) for v, f in parts if len(f)]
     if not pieces:
         raise MeshError(f"{method} returned no convex pieces")
     if path is not None:
         arrays = {f"v{i}": p.vertices for i, p in enumerate(pieces)} | {f"f{i}": p.faces for i, p in enumerate(pieces)}
-        atomic_savez(path, count=np.int64(len(pieces)), **arrays)
-    return pieces
+        atomic_savez(path, count=np.int64(len(pieces)), seconds=np.float64(seconds), **arrays)
+    return pieces, seconds
 
 
 def _coacd(mesh: trimesh.Trimesh, threshold: float, max_hulls: int):
@@ -152,12 +168,13 @@ class _elapsed:
     def __enter__(self):
         if not self.enabled:
             return self
-        self.bar = tqdm(desc=self.what, bar_format="{desc}: {elapsed}")
+        self.bar = tqdm(desc=self.what, bar_format="{desc}: {elapsed}", mininterval=1.0)
         self.done = threading.Event()
 
-        def tick():
-            while not self.done.wait(0.5):
-                self.bar.refresh()
+        def tick():  # on a terminal only: a log gets the start and the end
+            while not self.done.wait(1.0):
+                if sys.stderr.isatty():
+                    self.bar.refresh()
 
         self.thread = threading.Thread(target=tick, daemon=True)
         self.thread.start()

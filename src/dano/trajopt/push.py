@@ -31,6 +31,8 @@ from dano.types import DANO
 
 PANDA_HOME = (0.0, 0.614, 0.0, -2.073, 0.0, 2.686, 0.785, 0.02, 0.02)
 """Panda joints with the hand pointing down 0.58 m in front of the base, fingertips 1.5 cm above the floor."""
+PANDA_CONTACT = ("panda_link7", "panda_hand", "panda_leftfinger", "panda_rightfinger")
+"""The Panda links that can touch a tabletop object in the push (the rest stay > 14 cm up)."""
 PANDA_TORQUE = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 """The Panda's joint torque limits, N m (Franka's datasheet)."""
 
@@ -128,7 +130,7 @@ def _scene(dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: f
         base = -0.58 * side - (reach + 0.06) * direction
         yaw = float(np.arctan2(side[1], side[0]))
         quat = (float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2)))
-        arm = dataclasses.replace(panda(base_pos=(*base, 0.0), qpos=PANDA_HOME), base_quat=quat)
+        arm = panda(base_pos=(*base, 0.0), qpos=PANDA_HOME, base_quat=quat, contact_bodies=PANDA_CONTACT)
         scene = dataclasses.replace(scene, primitives=(), robot=arm)
     scene = dataclasses.replace(scene, timestep=substep, substeps=1, duration=dt)
     return at_rest(at_interval(scene, dt))
