@@ -130,7 +130,7 @@ def _trajopt(args: argparse.Namespace) -> None:
     import dataclasses
 
     from dano.io import load_dano
-    from dano.trajopt.push import DEFAULT_OPTIONS, PushTask, push_problem, solve_push
+    from dano.trajopt.push import DEFAULT_OPTIONS, PushTask, push_problem, render_push, solve_push
 
     obj = load_dano(args.dano) if args.dano else _default_bunny()
     task = PushTask(goal=tuple(args.goal), horizon=args.horizon, dt=args.dt, goal_as_constraint=not args.goal_cost)
@@ -138,9 +138,7 @@ def _trajopt(args: argparse.Namespace) -> None:
     options = dataclasses.replace(DEFAULT_OPTIONS, max_iterations=args.max_iterations)
     result = solve_push(push, options, progress=not args.json)
     if args.video:
-        from dano.sim.render import render_video
-
-        render_video(push.sim, result.replay, args.video, fps=min(30.0, 1.0 / args.dt), progress=not args.json)
+        render_push(push, result, args.video, progress=not args.json)
     if args.json:
         print(json.dumps(result.summary()))
         return
@@ -243,11 +241,11 @@ def _field_models(args: argparse.Namespace, knobs: dict):
 
     truth = None
     if args.source.lower().endswith(MESH_SUFFIXES):
-        mesh = load_mesh(args.source, repair=args.repair)
+        mesh = load_mesh(args.source, repair=args.repair, scale=args.scale)
         truth = C.mesh_model("truth (mesh)", mesh, progress=True, **knobs)
         field = mesh_field(mesh, resolution=args.resolution)
     else:
-        field = field_from_source(args.source, resolution=args.resolution)
+        field = field_from_source(args.source, scale=args.scale, resolution=args.resolution)
         if isinstance(field, DANO):
             raise C.CompareError("compare needs the field the DANO comes from (a mesh, grid, checkpoint or spec)")
     levels = _parse_levels(args.levels, field_peak(field, args.seed))
@@ -342,6 +340,7 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--resolution", type=int, default=100, help="grid nodes along the longest side (default 100)")
     c.add_argument("--clean", action="store_true", help="keep each level set's largest component, repair it")
     c.add_argument("--repair", action="store_true", help="make a non-watertight source mesh watertight")
+    c.add_argument("--scale", type=float, default=1.0, help="multiply the source's lengths by this (m per unit)")
     c.add_argument("--decomposition", choices=["coacd", "vhacd"], default="coacd")
     c.add_argument("--threshold", type=float, default=0.05, help="CoACD concavity (V-HACD: volume error / 100)")
     c.add_argument("--max-hulls", type=int, default=-1, help="cap on convex pieces (-1: none)")

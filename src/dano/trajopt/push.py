@@ -299,3 +299,20 @@ def solve_push(push: PushProblem, options: Options = DEFAULT_OPTIONS, progress: 
         solution=sol, final_error_m=float(np.linalg.norm(final[:2] - push.goal_world)),
         ee_error_m=float(np.linalg.norm(ee - push.ee_goal)), replay_gap_m=gap, replay=replay,
     )  # fmt: skip
+
+
+def render_push(push: PushProblem, result: PushResult, path, frames_per_step: int = 4, progress: bool = True):
+    """Renders the open-loop replay with `frames_per_step` video frames per control step (the same
+    substeps, regrouped: a control is held over its step), at the real-time frame rate."""
+    from dano.sim.render import render_video
+
+    scene = push.sim.scene
+    if scene.substeps % frames_per_step:
+        frames_per_step = 1
+    fine = dataclasses.replace(
+        scene, timestep=scene.timestep / frames_per_step, substeps=scene.substeps // frames_per_step
+    )
+    sim = Simulation.from_scene(fine)
+    ctrl = jnp.repeat(push.full_ctrl(jnp.asarray(result.solution.controls)), frames_per_step, axis=0)
+    traj = sim.run(push.task.horizon * frames_per_step, ctrl=ctrl)
+    return render_video(sim, traj, path, fps=frames_per_step / push.task.dt, progress=progress)
