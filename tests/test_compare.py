@@ -7,6 +7,8 @@ and reaches ~1 cm below the box: a rigid object made of both rests on the floate
 box's far edge, tilted by about atan(1 cm / 12 cm) ~ 5-7 degrees. The box's own level sets are flat.
 """
 
+import json
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -77,3 +79,25 @@ def test_low_level_rests_tilted_on_the_floater_while_the_dano_rests_flat(tmp_pat
     assert ours["rest_angle_diff_deg"] < low["rest_angle_diff_deg"] / 2
     table = C.format_table(result.rows)
     assert "level 10" in table and "DANO" in table
+
+
+def test_cli_compare_on_an_analytic_box(tmp_path, capsys):
+    from dano.cli import main
+
+    plot = tmp_path / "rests.png"
+    args = ["compare", "box:size=0.1,0.06,0.04", "--levels", "500", "--resolution", "30", "--points", "500"]
+    assert main([*args, "--json", "--plot", str(plot)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [r["model"] for r in out["rows"]] == ["level 500", "DANO"]
+    assert all(r["rest_tilt_deg"] < 2.0 for r in out["rows"])
+    assert plot.stat().st_size > 10_000
+    assert main(["compare", "bluesoap"]) == 2
+    assert "--data-dir" in capsys.readouterr().err
+
+
+def test_the_authors_level_3_decomposition_is_read_as_145_convex_pieces(dojo):
+    from dano.baselines.compare import _obj_groups
+
+    pieces = _obj_groups(dojo / "meshes" / "levelsets" / "bluesoap_level_3_decomposed.obj")
+    assert len(pieces) == 145
+    assert all(p.is_convex and p.volume > 0 for p in pieces)

@@ -365,11 +365,12 @@ def reference_models(
 def _obj_groups(path) -> list[trimesh.Trimesh]:
     """The `o` groups of an OBJ file as separate meshes, each its vertices' convex hull (wound outward)."""
     groups: list[list[list[float]]] = []
-    for line in open(path, encoding="utf-8"):
-        if line.startswith("o "):
-            groups.append([])
-        elif line.startswith("v ") and groups:
-            groups[-1].append([float(v) for v in line.split()[1:4]])
+    with open(path, encoding="utf-8") as f:
+        for line in f:
+            if line.startswith("o "):
+                groups.append([])
+            elif line.startswith("v ") and groups:
+                groups[-1].append([float(v) for v in line.split()[1:4]])
     if not groups:
         raise CompareError(f"{path}: no 'o' groups (convex pieces) in the file")
     return [trimesh.convex.convex_hull(np.asarray(g)) for g in groups if len(g) >= 4]
