@@ -1,4 +1,4 @@
-"""Why dano sets `XLA_FLAGS=--xla_cpu_use_fusion_emitters=false` (see `dano._xla`).
+"""Why dano sets `XLA_FLAGS=--xla_cpu_use_fusion_emitters=false` (see `dano._env`).
 
     python bench/xla_fusion.py
 

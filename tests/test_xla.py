@@ -1,10 +1,10 @@
-"""dano's XLA settings (`dano._xla`): set on import, never over a user's own choice."""
+"""dano's XLA settings (`dano._env`): set on import, never over a user's own choice."""
 
 import os
 import subprocess
 import sys
 
-from dano._xla import FLAG
+from dano._env import FLAG
 
 SHOW = "import os, dano; print(os.environ['XLA_FLAGS'])"
 

@@ -10,7 +10,7 @@ Example:
 """
 
 from dano import (
-    _xla,  # noqa: F401  (first: sets XLA_FLAGS before JAX starts)
+    _env,  # noqa: F401  (first: sets XLA_FLAGS and MUJOCO_GL before JAX and MuJoCo start)
     errors,
     fields,
 )

@@ -1,11 +1,5 @@
 """DANOs inside MuJoCo MJX: scenes, the contact step, rollouts."""
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; must be set before mujoco is imported
-
-# ruff: noqa: E402
-
 from dano.sim.scene import (
     DanoBody,
     Params,

@@ -1,4 +1,7 @@
-"""XLA settings dano needs, applied when dano is imported (before JAX starts its CPU backend).
+"""Process settings dano needs, applied when dano is imported: before JAX starts its CPU backend
+and before MuJoCo is imported.
+
+MuJoCo renders headless through EGL (`MUJOCO_GL=egl` unless set): it reads the variable on import.
 
 XLA's CPU fusion emitters (jaxlib 0.10) duplicate work inside fusions along a kinematic chain: the
 cost grows exponentially with the chain's depth once the bodies' frames are rotated. MJX's forward
@@ -15,6 +18,12 @@ FLAG = "--xla_cpu_use_fusion_emitters=false"
 
 
 def configure() -> None:
+    """Both settings: MuJoCo's headless renderer, and XLA's CPU emitters (`configure_xla`)."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    configure_xla()
+
+
+def configure_xla() -> None:
     """Adds `FLAG` to `XLA_FLAGS` unless the user set that option; warns if JAX already started."""
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_cpu_use_fusion_emitters" in flags:
