@@ -3,6 +3,7 @@
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -202,7 +203,7 @@ def _compare(args: argparse.Namespace) -> None:
 
     scenarios = C.Scenarios(friction=args.friction, drop_s=args.drop_seconds, slide_speed=args.slide_speed)
     knobs = {"decomposition": args.decomposition, "threshold": args.threshold, "max_hulls": args.max_hulls}
-    if args.source in C.REFERENCE_LEVELS and not _exists(args.source):
+    if args.source in C.REFERENCE_LEVELS and not Path(args.source).exists():
         if args.data_dir is None:
             raise C.CompareError(f"{args.source} is reference data: give --data-dir (the folder with colliders/)")
         models, dano_model = C.reference_models(args.source, args.data_dir, **knobs)
@@ -222,12 +223,6 @@ def _compare(args: argparse.Namespace) -> None:
         print(C.format_table(result.rows))
         if args.plot:
             print(f"wrote {args.plot}")
-
-
-def _exists(path: str) -> bool:
-    from pathlib import Path
-
-    return Path(path).exists()
 
 
 def _field_models(args: argparse.Namespace, knobs: dict):

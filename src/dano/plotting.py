@@ -36,11 +36,7 @@ def plot_dano(dano: DANO, path: str | Path, title: str = "", n_normals: int = 40
             ax.legend(loc="upper left")
     fig.colorbar(sc, ax=fig.axes, shrink=0.6, label="density")
     fig.suptitle(title or f"DANO: {dano.n_points} surface points, mass {float(dano.mass):.4g} kg, normals in red")
-    path = Path(path)
-    with atomic_write(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_identification(problem, result, path: str | Path, max_windows: int = 6) -> Path:
@@ -84,11 +80,7 @@ def plot_identification(problem, result, path: str | Path, max_windows: int = 6)
     fitted = ", ".join(f"{k} = {v:.4g} ± {result.stderr[k]:.2g}" for k, v in result.params.items())
     ax.set_title(fitted, fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_write(path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_rests(comparison, path: str | Path, title: str = "") -> Path:
@@ -125,6 +117,11 @@ def plot_rests(comparison, path: str | Path, title: str = "") -> Path:
         axes[0, k].set_title(label, fontsize=9)
     fig.suptitle(title or "At rest on the floor: level-set meshes (MuJoCo) and the DANO")
     fig.tight_layout()
+    return _save(fig, path)
+
+
+def _save(fig, path: str | Path) -> Path:
+    """Writes the figure as a PNG atomically (temporary file, then rename) and closes it."""
     path = Path(path)
     with atomic_write(path, suffix=".png") as tmp:
         fig.savefig(tmp, dpi=110)

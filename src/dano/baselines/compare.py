@@ -113,11 +113,10 @@ def mesh_model(
 
 
 def dano_model(label: str, dano: DANO, preprocess_s: float = 0.0) -> Model:
-    """A DANO as a collision model (its volume-equivalent is mass / (alpha * peak))."""
-    if dano.peak is None:
-        raise CompareError("the DANO has no peak density, so its volume cannot be compared; rebuild it")
+    """A DANO as a collision model. Its volume-equivalent is mass / (alpha * peak); unknown (nan,
+    reported as None) when the field's peak is (the authors' colliders)."""
     mass = float(dano.mass)
-    volume = mass / (float(dano.alpha) * float(dano.peak))
+    volume = float("nan") if dano.peak is None else mass / (float(dano.alpha) * float(dano.peak))
     return Model(label, volume, np.asarray(dano.com), np.asarray(dano.inertia) / mass, None, None, dano, preprocess_s)
 
 
@@ -359,7 +358,7 @@ def reference_models(
             mesh = mesh.simplify_quadric_decimation(face_count=max_faces)
         models.append(mesh_model(f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress,
                                  time.perf_counter() - start))  # fmt: skip
-    return models, dano_model_without_peak("DANO (authors')", load_reference(collider))
+    return models, dano_model("DANO (authors')", load_reference(collider))
 
 
 def _obj_groups(path) -> list[trimesh.Trimesh]:
@@ -391,9 +390,3 @@ def _pieces_model(label: str, whole: trimesh.Trimesh, pieces: list, preprocess_s
         r = p.center_mass - com
         inertia += p.moment_inertia + v * (r @ r * np.eye(3) - np.outer(r, r))
     return Model(label, float(volumes.sum()), com, inertia / volumes.sum(), whole, pieces, None, preprocess_s)
-
-
-def dano_model_without_peak(label: str, dano: DANO) -> Model:
-    """A DANO whose field peak is unknown (the authors' colliders): its volume is left undefined (nan)."""
-    mass = float(dano.mass)
-    return Model(label, float("nan"), np.asarray(dano.com), np.asarray(dano.inertia) / mass, None, None, dano, 0.0)

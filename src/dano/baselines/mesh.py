@@ -188,23 +188,9 @@ class _elapsed:
         return False
 
 
-def mujoco_mesh_model(
-    pieces: list[trimesh.Trimesh],
-    mass: float,
-    pos=(0.0, 0.0, 0.1),
-    quat=(1.0, 0.0, 0.0, 0.0),
-    friction: float = 0.5,
-    timestep: float = 0.002,
-    ground: bool = True,
-    inertial: tuple[np.ndarray, np.ndarray] | None = None,
-) -> mujoco.MjModel:
-    """A MuJoCo (C engine) model: one free body made of convex mesh geoms, on a ground plane.
-
-    Mass is `mass`. Without `inertial`, it is spread over the pieces by volume and MuJoCo computes
-    the inertia from them; `inertial = (com (3,), inertia about the com (3, 3))`, body frame, sets
-    them explicitly (e.g. from the uncut mesh, which the pieces only approximate).
-    """
-    return mujoco_mesh_spec(pieces, mass, pos, quat, friction, timestep, ground, inertial).compile()
+def mujoco_mesh_model(pieces: list[trimesh.Trimesh], mass: float, **kwargs) -> mujoco.MjModel:
+    """`mujoco_mesh_spec(pieces, mass, **kwargs)`, compiled."""
+    return mujoco_mesh_spec(pieces, mass, **kwargs).compile()
 
 
 def mujoco_mesh_spec(
@@ -217,7 +203,13 @@ def mujoco_mesh_spec(
     ground: bool = True,
     inertial: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> mujoco.MjSpec:
-    """The uncompiled `mujoco_mesh_model`, for adding more to the scene (the body is "object")."""
+    """A MuJoCo (C engine) model of one free body (named "object") made of convex mesh geoms, on a
+    ground plane; uncompiled, so more can be added to the scene (`mujoco_mesh_model` compiles it).
+
+    Mass is `mass`. Without `inertial`, it is spread over the pieces by volume and MuJoCo computes
+    the inertia from them; `inertial = (com (3,), inertia about the com (3, 3))`, body frame, sets
+    them explicitly (e.g. from the uncut mesh, which the pieces only approximate).
+    """
     if not mass > 0:
         raise MeshError(f"mass must be positive, got {mass}")
     spec = mujoco.MjSpec()
