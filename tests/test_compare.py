@@ -77,6 +77,10 @@ def test_low_level_rests_tilted_on_the_floater_while_the_dano_rests_flat(tmp_pat
     assert ours["rest_height_m"] == pytest.approx(0.02, abs=2e-3)
     assert abs(ours["mass_error"]) < 0.02 and ours["inertia_error"] < 0.03
     assert ours["rest_angle_diff_deg"] < low["rest_angle_diff_deg"] / 2
+    # The push: a 2 cm sphere moving 16 cm from 5 mm behind the box pushes it ~11 cm and then some
+    # (the contact launches it ahead). The DANO is pushed about as far as the true box.
+    assert 0.10 < result.truth_outcome.push_m < 0.18
+    assert ours["push_m"] == pytest.approx(result.truth_outcome.push_m, rel=0.15)
     table = C.format_table(result.rows)
     assert "level 10" in table and "DANO" in table
 

@@ -201,8 +201,15 @@ def _demo(args: argparse.Namespace) -> None:
 def _compare(args: argparse.Namespace) -> None:
     from dano.baselines import compare as C
 
-    scenarios = C.Scenarios(friction=args.friction, drop_s=args.drop_seconds, slide_speed=args.slide_speed)
-    knobs = {"decomposition": args.decomposition, "threshold": args.threshold, "max_hulls": args.max_hulls}
+    scenarios = C.Scenarios(
+        friction=args.friction, drop_s=args.drop_seconds, slide_speed=args.slide_speed, push_speed=args.push_speed
+    )
+    knobs = {
+        "decomposition": args.decomposition,
+        "threshold": args.threshold,
+        "max_hulls": args.max_hulls,
+        "max_faces": args.max_faces,
+    }
     if args.source in C.REFERENCE_LEVELS and not Path(args.source).exists():
         if args.data_dir is None:
             raise C.CompareError(f"{args.source} is reference data: give --data-dir (the folder with colliders/)")
@@ -339,10 +346,12 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--decomposition", choices=["coacd", "vhacd"], default="coacd")
     c.add_argument("--threshold", type=float, default=0.05, help="CoACD concavity (V-HACD: volume error / 100)")
     c.add_argument("--max-hulls", type=int, default=-1, help="cap on convex pieces (-1: none)")
+    c.add_argument("--max-faces", type=int, default=10000, help="decimate meshes to this many faces before decomposing")
     c.add_argument("--points", type=int, default=3000, help="DANO surface points (default 3000)")
     c.add_argument("--friction", type=float, default=0.5)
     c.add_argument("--drop-seconds", type=float, default=1.0, help="settling time after the drop (default 1)")
     c.add_argument("--slide-speed", type=float, default=0.5, help="m/s (default 0.5)")
+    c.add_argument("--push-speed", type=float, default=0.2, help="m/s of the pushing sphere (default 0.2)")
     c.add_argument("--seed", type=int, default=0)
     c.add_argument("--plot", help="PNG of every model at rest on the floor (the paper's Fig. 8)")
     c.add_argument("--json", action="store_true", help='one JSON object {"source", "truth", "rows": [...]}')

@@ -6,6 +6,9 @@ when there is one) goes through the same scenarios:
 - drop: released at rest, level, its field frame 2 cm above where the truth rests, for `drop_s`;
   the rest pose is where it ends.
 - slide: from that rest pose, launched along +x at `slide_speed`, for `slide_s`.
+- push: from that rest pose, a sphere (driven kinematically, radius half the object's height at rest,
+  on the floor, in line with its centre of mass) starts `push_gap` behind the object and moves along
+  +x at `push_speed` for `push_s`.
 
 Meshes run in MuJoCo's C engine (convex pieces, mass and inertia from the uncut mesh); the DANO in
 dano's simulator (MJX + the probabilistic contact). Poses are of the field's own frame, so all
@@ -20,7 +23,7 @@ import mujoco
 import numpy as np
 import trimesh
 
-from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, mujoco_mesh_model
+from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, mujoco_mesh_spec
 from dano.errors import DanoError
 from dano.fields import AbstractField
 from dano.types import DANO
@@ -39,7 +42,23 @@ class Scenarios:
     drop_s: float = 1.0
     slide_speed: float = 0.5
     slide_s: float = 1.0
+    push_speed: float = 0.2
+    push_s: float = 0.8
+    push_gap: float = 0.005
     timestep: float = 0.002
+
+
+@dataclasses.dataclass(frozen=True)
+class Pusher:
+    """The push scenario's sphere: radius (m), centre at the start (world, m), velocity (m/s)."""
+
+    radius: float
+    start: np.ndarray
+    velocity: np.ndarray
+
+    def path(self, times: np.ndarray) -> np.ndarray:
+        """Centre at `times` (n,) s: (n, 3)."""
+        return self.start[None, :] + np.asarray(times)[:, None] * self.velocity[None, :]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +93,7 @@ class Outcome:
 
     rest: np.ndarray
     slide_end: np.ndarray
+    push_end: np.ndarray
     sim_s: float
 
     @property
@@ -86,6 +106,11 @@ class Outcome:
         """Horizontal distance the field frame travelled in the slide, m."""
         return float(np.linalg.norm(self.slide_end[:2] - self.rest[:2]))
 
+    @property
+    def push_m(self) -> float:
+        """Horizontal distance the field frame travelled in the push, m."""
+        return float(np.linalg.norm(self.push_end[:2] - self.rest[:2]))
+
 
 def mesh_model(
     label: str,
@@ -96,13 +121,20 @@ def mesh_model(
     cache_dir=CACHE,
     progress: bool = True,
     preprocess_s: float = 0.0,
+    max_faces: int = 10000,
 ) -> Model:
     """A mesh as a collision model: convex pieces (the mesh itself if convex), and the mass properties
-    of the mesh (of the pieces when the mesh is not watertight, e.g. a NeRF level set with holes)."""
+    of the mesh (of the pieces when the mesh is not watertight, e.g. a NeRF level set with holes).
+
+    The decomposition runs on a copy decimated to `max_faces` (quadric decimation; CoACD's time grows
+    with the face count), the mass properties come from the mesh as given."""
     if mesh.is_convex:
         pieces, seconds = [mesh], 0.0
     else:
-        pieces, seconds = decompose(mesh, decomposition, threshold, max_hulls, cache_dir, progress)
+        start = time.perf_counter()
+        coarse = mesh.simplify_quadric_decimation(face_count=max_faces) if len(mesh.faces) > max_faces else mesh
+        pieces, seconds = decompose(coarse, decomposition, threshold, max_hulls, cache_dir, progress)
+        seconds += time.perf_counter() - start if coarse is not mesh else 0.0
     elapsed = preprocess_s + seconds  # the decomposition's own time, also when it came from the cache
     if not mesh.is_watertight:  # no inside to integrate: the pieces' mass properties, as MuJoCo's own
         return _pieces_model(label, mesh, pieces, elapsed)
@@ -130,6 +162,7 @@ def level_set_models(
     max_hulls: int = -1,
     cache_dir=CACHE,
     progress: bool = True,
+    max_faces: int = 10000,
 ) -> list[Model]:
     """One mesh model per density level: marching cubes, optional clean-up, convex decomposition."""
     if not levels:
@@ -142,68 +175,110 @@ def level_set_models(
             mesh = clean_mesh(mesh)
         elapsed = time.perf_counter() - start
         models.append(
-            mesh_model(f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress, elapsed)
+            mesh_model(
+                f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress, elapsed, max_faces
+            )
         )
     return models
 
 
+def _geometry(model: Model) -> np.ndarray:
+    """(n, 3) points of the model's surface in its field frame (mesh vertices, else the DANO's points)."""
+    if model.mesh is not None:
+        return np.asarray(model.mesh.vertices, dtype=float)
+    return np.asarray(model.dano.points)  # type: ignore[union-attr]
+
+
 def release_height(reference: Model, scenarios: Scenarios) -> float:
     """Height of the field frame's origin that puts `reference`'s lowest point `drop_height` above z = 0."""
-    if reference.mesh is not None:
-        low = float(reference.mesh.bounds[0, 2])
-    else:
-        low = float(np.min(np.asarray(reference.dano.points)[:, 2]))  # type: ignore[union-attr]
-    return scenarios.drop_height - low
+    return scenarios.drop_height - float(_geometry(reference)[:, 2].min())
+
+
+def pusher(model: Model, rest: np.ndarray, scenarios: Scenarios) -> Pusher:
+    """The push scenario's sphere for `model` at rest at pose `rest` (x, y, z, qw, qx, qy, qz of its
+    field frame): radius half its height at rest, on the floor, starting `push_gap` behind its -x
+    side in line with its centre of mass, moving along +x."""
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, rest[3:] / np.linalg.norm(rest[3:]))
+    rot = rot.reshape(3, 3)
+    points = _geometry(model) @ rot.T + rest[:3]
+    com = rot @ model.com + rest[:3]
+    radius = 0.5 * float(points[:, 2].max() - max(points[:, 2].min(), 0.0))
+    start = np.array([points[:, 0].min() - radius - scenarios.push_gap, com[1], radius + 1e-3])
+    return Pusher(radius, start, np.array([scenarios.push_speed, 0.0, 0.0]))
 
 
 def simulate(model: Model, height: float, scenarios: Scenarios = Scenarios()) -> Outcome:
-    """Runs the drop and the slide for one model (MuJoCo C for meshes, dano's simulator for the DANO)."""
+    """Runs the drop, the slide and the push for one model (MuJoCo C for meshes, dano's simulator for
+    the DANO)."""
     start = time.perf_counter()
-    rest, end = (_simulate_dano if model.dano is not None else _simulate_mesh)(model, height, scenarios)
-    return Outcome(rest, end, time.perf_counter() - start)
+    rest, slide, pushed = (_simulate_dano if model.dano is not None else _simulate_mesh)(model, height, scenarios)
+    return Outcome(rest, slide, pushed, time.perf_counter() - start)
 
 
-def _simulate_mesh(model: Model, height: float, s: Scenarios) -> tuple[np.ndarray, np.ndarray]:
-    m = mujoco_mesh_model(
-        model.pieces,  # type: ignore[arg-type]
-        mass=1.0,
-        pos=(0.0, 0.0, height),
-        friction=s.friction,
-        timestep=s.timestep,
-        inertial=(model.com, model.inertia_per_mass),
-    )
+def _simulate_mesh(model: Model, height: float, s: Scenarios) -> tuple[np.ndarray, ...]:
+    def compiled(push: Pusher | None) -> mujoco.MjModel:
+        spec = mujoco_mesh_spec(
+            model.pieces,  # type: ignore[arg-type]
+            mass=1.0,
+            pos=(0.0, 0.0, height),
+            friction=s.friction,
+            timestep=s.timestep,
+            inertial=(model.com, model.inertia_per_mass),
+        )
+        if push is not None:
+            body = spec.worldbody.add_body(name="pusher", pos=push.start.tolist(), mocap=True)
+            body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[push.radius, 0, 0],
+                          friction=[s.friction, 0.005, 0.0001])  # fmt: skip
+        return spec.compile()
+
+    m = compiled(None)
     d = mujoco.MjData(m)
     mujoco.mj_step(m, d, nstep=int(round(s.drop_s / s.timestep)))
     rest = np.array(d.qpos[:7])
     d.qvel[:] = 0.0
     d.qvel[0] = s.slide_speed
     mujoco.mj_step(m, d, nstep=int(round(s.slide_s / s.timestep)))
-    if not np.all(np.isfinite(d.qpos)):
+    slide = np.array(d.qpos[:7])
+    push = pusher(model, rest, s)
+    m = compiled(push)
+    d = mujoco.MjData(m)
+    d.qpos[:7] = rest
+    for centre in push.path(s.timestep * np.arange(1, int(round(s.push_s / s.timestep)) + 1)):
+        d.mocap_pos[0] = centre
+        mujoco.mj_step(m, d)
+    pushed = np.array(d.qpos[:7])
+    if not np.all(np.isfinite(np.concatenate([slide, pushed]))):
         raise CompareError(f"{model.label}: MuJoCo's state became non-finite")
-    return rest, np.array(d.qpos[:7])
+    return rest, slide, pushed
 
 
-def _simulate_dano(model: Model, height: float, s: Scenarios) -> tuple[np.ndarray, np.ndarray]:
+def _simulate_dano(model: Model, height: float, s: Scenarios) -> tuple[np.ndarray, ...]:
     from dano.contact import ContactParams
-    from dano.sim.run import Simulation, body_poses, check_trajectory
-    from dano.sim.scene import DanoBody, Scene
+    from dano.sim.run import Simulation, body_poses
+    from dano.sim.scene import DanoBody, Primitive, Scene
 
     dano = model.dano
     com = np.asarray(dano.com)  # type: ignore[union-attr]
 
-    def run(pos, quat, vel, seconds):
+    def run(pos, quat, vel, seconds, push=None):
         body = DanoBody("object", dano, pos=tuple(pos), quat=tuple(quat), vel=tuple(vel))  # type: ignore[arg-type]
-        scene = Scene(
-            bodies=(body,), contact=ContactParams(sliding_friction=s.friction), timestep=s.timestep, duration=seconds
+        spheres = (
+            () if push is None else (Primitive("pusher", "sphere", (push.radius,), tuple(push.start), mode="mocap"),)
         )
+        scene = Scene(
+            bodies=(body,), primitives=spheres, timestep=s.timestep, duration=seconds,
+            contact=ContactParams(sliding_friction=s.friction),
+        )  # fmt: skip
         sim = Simulation.from_scene(scene)
-        traj = sim.run()
-        check_trajectory(traj, sim.scene)
-        return body_poses(traj, sim)["object"][-1]
+        path = None if push is None else push.path(s.timestep * np.arange(1, scene.n_steps + 1))[:, None, :]
+        return body_poses(sim.run(mocap_pos=path), sim)["object"][-1]
 
     rest_com = run((com[0], com[1], com[2] + height), (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0), s.drop_s)
-    end_com = run(rest_com[:3], rest_com[3:], (s.slide_speed, 0.0, 0.0), s.slide_s)
-    return _com_to_frame(rest_com, com), _com_to_frame(end_com, com)
+    rest = _com_to_frame(rest_com, com)
+    slide_com = run(rest_com[:3], rest_com[3:], (s.slide_speed, 0.0, 0.0), s.slide_s)
+    push_com = run(rest_com[:3], rest_com[3:], (0.0, 0.0, 0.0), s.push_s, pusher(model, rest, s))
+    return rest, _com_to_frame(slide_com, com), _com_to_frame(push_com, com)
 
 
 def _com_to_frame(pose: np.ndarray, com: np.ndarray) -> np.ndarray:
@@ -230,6 +305,7 @@ def report(
             "rest_tilt_deg": out.tilt_deg,
             "rest_height_m": float(out.rest[2]),
             "slide_m": out.slide_m,
+            "push_m": out.push_m,
             "preprocess_s": model.preprocess_s,
             "sim_s": out.sim_s,
         }
@@ -243,6 +319,8 @@ def report(
                 "rest_angle_diff_deg": _angle_deg(out.rest[3:], truth_outcome.rest[3:]),
                 "slide_end_diff_m": float(np.linalg.norm(out.slide_end[:3] - truth_outcome.slide_end[:3])),
                 "slide_angle_diff_deg": _angle_deg(out.slide_end[3:], truth_outcome.slide_end[3:]),
+                "push_end_diff_m": float(np.linalg.norm(out.push_end[:3] - truth_outcome.push_end[:3])),
+                "push_angle_diff_deg": _angle_deg(out.push_end[3:], truth_outcome.push_end[3:]),
             }
         rows.append({k: None if isinstance(v, float) and not np.isfinite(v) else v for k, v in row.items()})
     return rows
@@ -283,11 +361,14 @@ def format_table(rows: list[dict]) -> str:
         ("model", "model", "{}"), ("pieces", "pieces", "{}"), ("mass_error", "mass err", "{:+.1%}"),
         ("inertia_error", "inertia err", "{:.1%}"), ("com_error_m", "com err mm", "{:.1f}"),
         ("rest_tilt_deg", "tilt deg", "{:.1f}"), ("rest_height_m", "rest z mm", "{:.1f}"),
-        ("slide_m", "slide mm", "{:.1f}"), ("rest_position_diff_m", "rest dpos mm", "{:.1f}"),
-        ("rest_angle_diff_deg", "rest dang deg", "{:.1f}"), ("slide_end_diff_m", "slide dpos mm", "{:.1f}"),
+        ("slide_m", "slide mm", "{:.1f}"), ("push_m", "push mm", "{:.1f}"),
+        ("rest_position_diff_m", "rest dpos mm", "{:.1f}"), ("rest_angle_diff_deg", "rest dang deg", "{:.1f}"),
+        ("slide_end_diff_m", "slide dpos mm", "{:.1f}"), ("push_end_diff_m", "push dpos mm", "{:.1f}"),
+        ("push_angle_diff_deg", "push dang deg", "{:.1f}"),
         ("preprocess_s", "prep s", "{:.1f}"), ("sim_s", "sim s", "{:.1f}"),
     ]  # fmt: skip
-    scale = {"com_error_m", "rest_height_m", "slide_m", "rest_position_diff_m", "slide_end_diff_m"}
+    scale = {"com_error_m", "rest_height_m", "slide_m", "push_m", "rest_position_diff_m", "slide_end_diff_m",
+             "push_end_diff_m"}  # fmt: skip
     present = [c for c in columns if any(c[0] in r for r in rows)]
     cells = [[h for _, h, _ in present]]
     for r in rows:
@@ -354,10 +435,8 @@ def reference_models(
             continue
         mesh = _outward(trimesh.load(path, force="mesh", process=True))
         mesh.merge_vertices()
-        if len(mesh.faces) > max_faces:
-            mesh = mesh.simplify_quadric_decimation(face_count=max_faces)
         models.append(mesh_model(f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress,
-                                 time.perf_counter() - start))  # fmt: skip
+                                 time.perf_counter() - start, max_faces))  # fmt: skip
     return models, dano_model("DANO (authors')", load_reference(collider))
 
 

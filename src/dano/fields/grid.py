@@ -30,26 +30,32 @@ class GridField(AbstractField):
             )
 
     def __call__(self, x: Float[Array, "n 3"]) -> Float[Array, " n"]:
-        lo, hi = jnp.asarray(self.bounds, dtype=x.dtype)
-        cells = jnp.asarray(self.density.shape, dtype=x.dtype) - 1
-        u = (x - lo[None, :]) / (hi - lo)[None, :] * cells[None, :]
-        inside = jnp.all((u >= 0) & (u <= cells[None, :]), axis=-1)
-        i0 = jnp.clip(jnp.floor(u), 0, cells[None, :] - 1)
-        f = u - i0
-        i0 = i0.astype(jnp.int32)
-        value = jnp.zeros(x.shape[:-1], dtype=self.density.dtype)
-        for corner in range(8):
-            bits = jnp.asarray([[(corner >> 2) & 1, (corner >> 1) & 1, corner & 1]], dtype=jnp.int32)
-            idx = i0 + bits
-            weight = jnp.prod(jnp.where(bits == 1, f, 1 - f), axis=-1)
-            value = value + weight * self.density[idx[:, 0], idx[:, 1], idx[:, 2]]
-        return jnp.where(inside, value, 0.0)
+        return trilinear(self.density, self.bounds, x)
 
     @property
     def spacing(self) -> np.ndarray:
         """Node spacing per axis, m."""
         lo, hi = np.asarray(self.bounds)
         return (hi - lo) / (np.asarray(self.density.shape) - 1)
+
+
+def trilinear(values: Float[Array, "nx ny nz ..."], bounds: Bounds, x: Float[Array, "n 3"]) -> Float[Array, "n ..."]:
+    """Trilinear interpolation of node values (with optional trailing channels) at points `x`; 0 outside."""
+    lo, hi = jnp.asarray(bounds, dtype=x.dtype)
+    cells = jnp.asarray(values.shape[:3], dtype=x.dtype) - 1
+    u = (x - lo[None, :]) / (hi - lo)[None, :] * cells[None, :]
+    inside = jnp.all((u >= 0) & (u <= cells[None, :]), axis=-1)
+    i0 = jnp.clip(jnp.floor(u), 0, cells[None, :] - 1)
+    f = u - i0
+    i0 = i0.astype(jnp.int32)
+    channels = (1,) * (values.ndim - 3)
+    value = jnp.zeros((x.shape[0], *values.shape[3:]), dtype=values.dtype)
+    for corner in range(8):
+        bits = jnp.asarray([[(corner >> 2) & 1, (corner >> 1) & 1, corner & 1]], dtype=jnp.int32)
+        idx = i0 + bits
+        weight = jnp.prod(jnp.where(bits == 1, f, 1 - f), axis=-1)
+        value = value + weight.reshape(-1, *channels) * values[idx[:, 0], idx[:, 1], idx[:, 2]]
+    return jnp.where(inside.reshape(-1, *channels), value, 0.0)
 
 
 def grid_nodes(bounds: Bounds, shape: tuple[int, int, int]) -> np.ndarray:
