@@ -232,6 +232,75 @@ def _compare(args: argparse.Namespace) -> None:
             print(f"wrote {args.plot}")
 
 
+def _render_views(args: argparse.Namespace) -> None:
+    from dano.fields import load_mesh
+    from dano.vision.data import render_views
+
+    mesh = load_mesh(args.mesh, repair=args.repair, scale=args.scale)
+    out = render_views(mesh, args.output, n_views=args.views, resolution=args.resolution, seed=args.seed,
+                       overwrite=args.overwrite)  # fmt: skip
+    print(f"wrote {out}: {args.views} views of {args.resolution} x {args.resolution} px with masks")
+
+
+def _fit_field(args: argparse.Namespace) -> None:
+    import jax
+
+    from dano.fields import save_grid
+    from dano.vision.data import load_nerf_synthetic
+    from dano.vision.fit import FitConfig, fit_field, solidify
+
+    views = load_nerf_synthetic(args.dataset, split=args.split, downscale=args.downscale)
+    config = FitConfig(steps=args.steps, resolution=args.resolution, n_samples=args.samples)
+    result = fit_field(views, config, key=jax.random.key(args.seed), progress=not args.json)
+    solid = solidify(result.field, views)
+    save_grid(args.output, solid.field)
+    if args.raw:
+        save_grid(args.raw, result.field)
+    psnr = float(result.psnr[-50:].mean())
+    summary = {"output": args.output, "views": views.n_views, "steps": args.steps, "psnr_db": psnr,
+               "seconds": result.seconds, "bounds": result.bounds.tolist()}  # fmt: skip
+    if args.json:
+        print(json.dumps(summary))
+    else:
+        print(f"wrote {args.output}: the solid (density 1000 inside; build a DANO with dano build)")
+        print(f"{views.n_views} views, {args.steps} steps in {result.seconds:.1f} s, PSNR {summary['psnr_db']:.1f} dB")
+
+
+def _track(args: argparse.Namespace) -> None:
+    from dano.build import field_from_source
+    from dano.sysid.data import Track, write_track
+    from dano.types import DANO
+    from dano.vision.data import load_camera, load_frames, load_masks
+    from dano.vision.track import TrackConfig, track
+
+    camera = load_camera(args.camera)
+    frames, _ = load_frames(args.video)
+    masks = load_masks(args.masks, len(frames), (camera.height, camera.width))
+    field = field_from_source(args.field, scale=args.scale)
+    if isinstance(field, DANO):
+        raise DanoError(f"{args.field}: tracking needs a field (grid, checkpoint, mesh, spec), not a DANO")
+    init = None
+    if args.init:
+        values = [float(v) for v in args.init.split(",")]
+        if len(values) != 7:
+            raise DanoError(f"--init takes x,y,z,qw,qx,qy,qz, got {args.init!r}")
+        init = (np.asarray(values[:3]), np.asarray(values[3:]))
+    config = TrackConfig(iterations=args.iterations, refine_iterations=args.refine)
+    result = track(field, camera, masks, config, init=init)
+    positions = result.positions
+    if args.frame == "com":  # what `dano sysid` reads: the centre of mass
+        from dano.mass import mass_properties
+        from dano.math import quat_to_mat
+
+        com = np.asarray(mass_properties(field).com)
+        positions = positions + np.einsum("tij,j->ti", np.asarray(quat_to_mat(result.quats)), com)
+    poses = np.concatenate([positions, result.quats], axis=1)
+    write_track(args.output, Track.from_poses(poses, 1.0 / args.fps, source=args.video))
+    per_frame = result.seconds / len(frames)
+    print(f"wrote {args.output}: {len(frames)} poses (position of the {args.frame}) in {result.seconds:.1f} s "
+          f"({per_frame:.2f} s per frame), mean mask loss {float(np.mean(result.losses)):.2e}")  # fmt: skip
+
+
 def _field_models(args: argparse.Namespace, knobs: dict):
     import time
 
@@ -356,6 +425,45 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--plot", help="PNG of every model at rest on the floor (the paper's Fig. 8)")
     c.add_argument("--json", action="store_true", help='one JSON object {"source", "truth", "rows": [...]}')
     c.set_defaults(run=_compare)
+
+    r = sub.add_parser("render-views", help="render a mesh from around it into a NeRF-synthetic dataset (with masks)")
+    r.add_argument("mesh", help="mesh file (.ply .obj .stl ...)")
+    r.add_argument("-o", "--output", required=True, help="dataset folder to create")
+    r.add_argument("--views", type=int, default=50)
+    r.add_argument("--resolution", type=int, default=64, help="image side, px (default 64)")
+    r.add_argument("--scale", type=float, default=1.0, help="multiply lengths by this (m per unit)")
+    r.add_argument("--repair", action="store_true", help="make a non-watertight mesh watertight first")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--overwrite", action="store_true")
+    r.set_defaults(run=_render_views)
+
+    f = sub.add_parser("fit-field", help="fit a density field to posed images (volume rendering), as a solid grid")
+    f.add_argument("dataset", help="folder in the NeRF-synthetic layout (transforms.json, images, masks)")
+    f.add_argument("-o", "--output", required=True, help="the solid field, a grid .npz (dano build reads it)")
+    f.add_argument("--steps", type=int, default=1000)
+    f.add_argument("--resolution", type=int, default=64, help="grid nodes along the box's longest side")
+    f.add_argument("--samples", type=int, default=128, help="samples per ray (default 128)")
+    f.add_argument("--downscale", type=int, default=1, help="box-average the images by this factor")
+    f.add_argument("--split", default="train")
+    f.add_argument("--raw", help="also write the fitted optical density (1/m) as a grid .npz")
+    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--json", action="store_true", help="one JSON object (psnr_db, seconds, bounds, ...)")
+    f.set_defaults(run=_fit_field)
+
+    k = sub.add_parser("track", help="track an object's pose through a video from its masks")
+    k.add_argument("video", help="a video file or a folder of frames")
+    k.add_argument("--field", required=True, help="the object's field: grid/checkpoint .npz, mesh, or spec")
+    k.add_argument("--camera", required=True, help="camera JSON {width, height, fx, fy, cx, cy, c2w}")
+    k.add_argument("--masks", required=True, help="folder of one mask PNG per frame (white = object)")
+    k.add_argument("-o", "--output", required=True, help="pose CSV t,x,y,z,qw,qx,qy,qz (as dano sysid reads)")
+    k.add_argument("--frame", choices=["com", "field"], default="com",
+                   help="positions of the centre of mass (default; sysid reads it) or of the field origin")  # fmt: skip
+    k.add_argument("--fps", type=float, default=30.0)
+    k.add_argument("--scale", type=float, default=1.0, help="multiply the field's lengths by this")
+    k.add_argument("--init", help="first frame's pose x,y,z,qw,qx,qy,qz (default: a guess from the first mask)")
+    k.add_argument("--iterations", type=int, default=60, help="Adam steps per frame (default 60)")
+    k.add_argument("--refine", type=int, default=0, help="steps of joint refinement over all frames (default 0)")
+    k.set_defaults(run=_track)
 
     d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
     d.add_argument("--out", default="dano-demo", help="output folder (default dano-demo)")

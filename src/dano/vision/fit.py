@@ -237,7 +237,11 @@ def fit_field(
     model = init_radiance_field(bounds, config, key=k_init)
     params, static = eqx.partition(model, eqx.is_inexact_array)
     params = jax.tree_util.tree_map(lambda a: a.astype(dtype), params)
-    schedule = optax.cosine_decay_schedule(config.learning_rate, config.steps, alpha=0.05)
+
+    def schedule(count):  # cosine decay to 5 % (optax's own mixes int and float, which strict promotion refuses)
+        progress = jnp.minimum(count, config.steps).astype(dtype) / config.steps
+        return config.learning_rate * (0.05 + 0.475 * (1.0 + jnp.cos(jnp.pi * progress)))
+
     optimiser = optax.adam(schedule)
     state = optimiser.init(params)
 
@@ -255,7 +259,8 @@ def fit_field(
             return colour_mse + masked + config.smoothness * model.regulariser(), colour_mse
 
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
-        updates, state = optimiser.update(grads, state, params)
+        with jax.numpy_dtype_promotion("standard"):  # optax raises floats to int powers
+            updates, state = optimiser.update(grads, state, params)
         return optax.apply_updates(params, updates), state, loss, mse
 
     losses, psnrs = np.zeros(config.steps), np.zeros(config.steps)

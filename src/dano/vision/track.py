@@ -219,7 +219,8 @@ def track(
 
         def body(i, carry):  # Adam with the rate decaying along a cosine to 5 %, so the pose settles
             delta, state = carry
-            direction, state = optimiser.update(jax.grad(loss)(delta), state)
+            with jax.numpy_dtype_promotion("standard"):  # optax raises floats to int powers
+                direction, state = optimiser.update(jax.grad(loss)(delta), state)
             rate = config.learning_rate * (0.05 + 0.475 * (1.0 + jnp.cos(jnp.pi * i / n)))
             return delta - rate * direction, state
 
@@ -271,7 +272,8 @@ def refine(s: Silhouette, positions, quats, targets, config: TrackConfig):
     def run(delta):
         def body(_, carry):
             delta, state = carry
-            updates, state = optimiser.update(jax.grad(loss)(delta), state, delta)
+            with jax.numpy_dtype_promotion("standard"):  # optax raises floats to int powers
+                updates, state = optimiser.update(jax.grad(loss)(delta), state, delta)
             return optax.apply_updates(delta, updates), state
 
         delta, _ = jax.lax.fori_loop(0, config.refine_iterations, body, (delta, optimiser.init(delta)))

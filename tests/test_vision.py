@@ -1,0 +1,119 @@
+"""From pixels: fitting a field to rendered views, solidifying it, tracking a rendered video."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import trimesh
+
+import dano
+from dano.fields import mesh_field
+from dano.math import quat_exp
+from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_video, render_views
+from dano.vision.fit import FitConfig, FitError, fit_field, solidify
+from dano.vision.track import TrackConfig, TrackError, downsample, mask_loss, render_silhouette, silhouette, track
+
+BOX = trimesh.creation.box((0.08, 0.05, 0.04))
+
+
+def _principal_per_mass(mesh):
+    exact = mesh.copy()
+    exact.density = 1.0 / mesh.volume
+    return np.sort(np.linalg.eigvalsh(exact.moment_inertia))
+
+
+def test_a_box_fitted_from_24_small_views_is_a_solid_box(tmp_path):
+    render_views(BOX, tmp_path / "views", n_views=24, resolution=32, progress=False)
+    views = load_nerf_synthetic(tmp_path / "views")
+    config = FitConfig(steps=300, resolution=32, n_samples=64)
+    result = fit_field(views, config, key=jax.random.key(0), progress=False)
+    assert result.psnr[-20:].mean() > 20.0
+    solid = solidify(result.field, views)
+    d = dano.build_dano(solid.field, n_points=1000, mass=1.0)
+    # One 32 px pixel is ~2.5 mm on the box; its half-sizes are 20-40 mm: moments within 15 %.
+    np.testing.assert_allclose(np.asarray(d.com), 0.0, atol=2.5e-3)
+    np.testing.assert_allclose(np.asarray(d.principal_moments()), _principal_per_mass(BOX), rtol=0.15)
+    again = fit_field(views, config, key=jax.random.key(0), progress=False)
+    np.testing.assert_array_equal(np.asarray(again.field.density), np.asarray(result.field.density))
+
+
+def test_fit_refuses_bad_settings_and_views_without_masks(tmp_path):
+    render_views(BOX, tmp_path / "views", n_views=4, resolution=16, progress=False)
+    views = load_nerf_synthetic(tmp_path / "views")
+    with pytest.raises(FitError, match="model must be"):
+        fit_field(views, FitConfig(steps=1, model="octree"), key=jax.random.key(0), progress=False)
+    with pytest.raises(FitError, match="n_samples"):
+        fit_field(views, FitConfig(steps=1, n_samples=1), key=jax.random.key(0), progress=False)
+    bare = type(views)(views.images, None, views.cameras, views.files)
+    with pytest.raises(FitError, match="no masks"):
+        fit_field(bare, FitConfig(steps=1), key=jax.random.key(0), progress=False)
+
+
+@pytest.mark.slow
+def test_the_bunny_fitted_from_50_views_gives_the_mesh_dano(tmp_path, bunny_mesh):
+    """Issue acceptance: centre of mass within 2 % of the box diagonal, principal moments within 5 %."""
+    render_views(bunny_mesh, tmp_path / "bunny", n_views=50, resolution=64, progress=False)
+    views = load_nerf_synthetic(tmp_path / "bunny")
+    result = fit_field(views, FitConfig(steps=1000), key=jax.random.key(0), progress=False)
+    solid = solidify(result.field, views)
+    d = dano.build_dano(solid.field, n_points=3000, mass=1.0)
+    diagonal = np.linalg.norm(np.ptp(bunny_mesh.vertices, axis=0))
+    assert np.linalg.norm(np.asarray(d.com) - bunny_mesh.center_mass) < 0.02 * diagonal
+    np.testing.assert_allclose(np.asarray(d.principal_moments()), _principal_per_mass(bunny_mesh), rtol=0.05)
+
+
+def _slide_and_turn(mesh, n):
+    t = np.linspace(0.0, 1.0, n)
+    pos = np.stack([0.1 * t, 0.02 * np.sin(3 * t), np.full(n, -mesh.bounds[0, 2])], axis=1)
+    yaw = np.radians(60.0) * t
+    quat = np.asarray(quat_exp(jnp.asarray(np.stack([0 * yaw, 0 * yaw, yaw], axis=1))))
+    return pos, quat
+
+
+def _errors(result, pos, quat):
+    position = np.linalg.norm(result.positions - pos, axis=1)
+    angle = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(result.quats * quat, axis=1)), 0.0, 1.0)))
+    return position, angle
+
+
+def test_tracking_a_rendered_box_sliding_and_turning(tmp_path):
+    pos, quat = _slide_and_turn(BOX, 8)
+    camera = camera_from_fov(64, 48, np.radians(50.0), look_at([0.05, -0.2, 0.12], [0.05, 0.0, 0.02]))
+    render_video(BOX, np.concatenate([pos, quat], axis=1), camera, tmp_path / "video", floor=True, progress=False)
+    masks = load_masks(tmp_path / "video" / "masks", 8, (48, 64))
+    field = mesh_field(BOX, resolution=40, progress=False)
+    result = track(field, camera, masks, TrackConfig(iterations=40), init=(pos[0], quat[0]), progress=False)
+    position, angle = _errors(result, pos, quat)
+    size = np.linalg.norm([0.08, 0.05, 0.04])
+    assert position.mean() < 0.03 * size and angle.mean() < 3.0
+    assert result.losses.max() < 0.02
+
+
+def test_silhouette_loss_gradient_matches_central_differences():
+    camera = camera_from_fov(24, 18, np.radians(50.0), look_at([0.0, -0.3, 0.15], [0.0, 0.0, 0.02]))
+    field = mesh_field(BOX, resolution=24, progress=False)
+    s = silhouette(field, camera, TrackConfig(n_samples=32, grid=24))
+    target = render_silhouette(s, jnp.asarray([0.0, 0.0, 0.02]), jnp.asarray([1.0, 0.0, 0.0, 0.0]))
+
+    def loss(p):
+        return mask_loss(s, render_silhouette(s, p[:3], quat_exp(p[3:])), target, 1.0)
+
+    p = jnp.asarray([0.006, -0.004, 0.025, 0.05, -0.03, 0.1])
+    g = jax.grad(loss)(p)
+    h = 1e-6
+    fd = np.array([(loss(p.at[i].add(h)) - loss(p.at[i].add(-h))) / (2 * h) for i in range(6)])
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+    assert np.abs(fd).max() > 1e-3
+
+
+def test_track_refuses_masks_of_another_size_and_empty_masks():
+    camera = camera_from_fov(16, 12, np.radians(50.0), look_at([0.0, -0.3, 0.1], [0.0, 0.0, 0.0]))
+    field = mesh_field(BOX, resolution=16, progress=False)
+    with pytest.raises(TrackError, match=r"\(12, 16\)"):
+        track(field, camera, np.ones((2, 10, 16)), progress=False)
+    masks = np.ones((3, 12, 16))
+    masks[1] = 0.0
+    with pytest.raises(TrackError, match="frame 1 is empty"):
+        track(field, camera, masks, progress=False)
+    small, cam = downsample(np.ones((1, 12, 16)), camera, 8)
+    assert small.shape == (1, 6, 8) and cam.fx == pytest.approx(camera.fx / 2)
