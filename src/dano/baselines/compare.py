@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 import trimesh
 
-from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, mujoco_mesh_spec
+from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, mujoco_mesh_spec, outward
 from dano.errors import DanoError
 from dano.fields import AbstractField
 from dano.types import DANO
@@ -133,8 +133,9 @@ def mesh_model(
     else:
         start = time.perf_counter()
         coarse = mesh.simplify_quadric_decimation(face_count=max_faces) if len(mesh.faces) > max_faces else mesh
+        decimation = time.perf_counter() - start
         pieces, seconds = decompose(coarse, decomposition, threshold, max_hulls, cache_dir, progress)
-        seconds += time.perf_counter() - start if coarse is not mesh else 0.0
+        seconds += decimation
     elapsed = preprocess_s + seconds  # the decomposition's own time, also when it came from the cache
     if not mesh.is_watertight:  # no inside to integrate: the pieces' mass properties, as MuJoCo's own
         return _pieces_model(label, mesh, pieces, elapsed)
@@ -198,9 +199,7 @@ def pusher(model: Model, rest: np.ndarray, scenarios: Scenarios) -> Pusher:
     """The push scenario's sphere for `model` at rest at pose `rest` (x, y, z, qw, qx, qy, qz of its
     field frame): radius half its height at rest, on the floor, starting `push_gap` behind its -x
     side in line with its centre of mass, moving along +x."""
-    rot = np.zeros(9)
-    mujoco.mju_quat2Mat(rot, rest[3:] / np.linalg.norm(rest[3:]))
-    rot = rot.reshape(3, 3)
+    rot = _rotation(rest[3:])
     points = _geometry(model) @ rot.T + rest[:3]
     com = rot @ model.com + rest[:3]
     radius = 0.5 * float(points[:, 2].max() - max(points[:, 2].min(), 0.0))
@@ -283,9 +282,14 @@ def _simulate_dano(model: Model, height: float, s: Scenarios) -> tuple[np.ndarra
 
 def _com_to_frame(pose: np.ndarray, com: np.ndarray) -> np.ndarray:
     """Pose of the centre of mass -> pose of the field frame (same orientation)."""
+    return np.concatenate([pose[:3] - _rotation(pose[3:]) @ com, pose[3:]])
+
+
+def _rotation(quat: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation matrix of a quaternion (w, x, y, z), any norm."""
     rot = np.zeros(9)
-    mujoco.mju_quat2Mat(rot, pose[3:])
-    return np.concatenate([pose[:3] - rot.reshape(3, 3) @ com, pose[3:]])
+    mujoco.mju_quat2Mat(rot, quat / np.linalg.norm(quat))
+    return rot.reshape(3, 3)
 
 
 def _angle_deg(q1: np.ndarray, q2: np.ndarray) -> float:
@@ -433,7 +437,7 @@ def reference_models(
             whole = trimesh.util.concatenate(pieces)
             models.append(_pieces_model(f"level {level:g}", whole, pieces, time.perf_counter() - start))
             continue
-        mesh = _outward(trimesh.load(path, force="mesh", process=True))
+        mesh = outward(trimesh.load(path, force="mesh", process=True))
         mesh.merge_vertices()
         models.append(mesh_model(f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress,
                                  time.perf_counter() - start, max_faces))  # fmt: skip
@@ -452,12 +456,6 @@ def _obj_groups(path) -> list[trimesh.Trimesh]:
     if not groups:
         raise CompareError(f"{path}: no 'o' groups (convex pieces) in the file")
     return [trimesh.convex.convex_hull(np.asarray(g)) for g in groups if len(g) >= 4]
-
-
-def _outward(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
 
 
 def _pieces_model(label: str, whole: trimesh.Trimesh, pieces: list, preprocess_s: float) -> Model:

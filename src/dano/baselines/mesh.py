@@ -54,7 +54,11 @@ def level_set_mesh(field: AbstractField, level: float, resolution: int = 100) ->
     if not values.max() > level:
         raise MeshError(f"no surface at level {level:g}: the field's densities are at most {values.max():g}")
     verts, faces, _, _ = marching_cubes(values, level=level, spacing=(h, h, h))
-    mesh = trimesh.Trimesh(verts + lo - h, faces, process=True)
+    return outward(trimesh.Trimesh(verts + lo - h, faces, process=True))
+
+
+def outward(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The mesh with its faces wound outward (positive volume), inverted in place if they were not."""
     if mesh.volume < 0:
         mesh.invert()
     return mesh

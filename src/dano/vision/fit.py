@@ -75,6 +75,11 @@ class FitConfig:
     dtype: str = "float32"
 
 
+def cosine_rate(rate: float, progress: Float[Array, ""]) -> Float[Array, ""]:
+    """A learning rate decaying from `rate` along a half cosine to 5 % of it as `progress` goes 0 -> 1."""
+    return rate * (0.05 + 0.475 * (1.0 + jnp.cos(jnp.pi * progress)))
+
+
 class RadianceField(eqx.Module):
     """Optical density (a `NeuralField`, 1/m) and diffuse colour in [0, 1] at points (n, 3), world frame."""
 
@@ -238,9 +243,8 @@ def fit_field(
     params, static = eqx.partition(model, eqx.is_inexact_array)
     params = jax.tree_util.tree_map(lambda a: a.astype(dtype), params)
 
-    def schedule(count):  # cosine decay to 5 % (optax's own mixes int and float, which strict promotion refuses)
-        progress = jnp.minimum(count, config.steps).astype(dtype) / config.steps
-        return config.learning_rate * (0.05 + 0.475 * (1.0 + jnp.cos(jnp.pi * progress)))
+    def schedule(count):  # optax's own cosine schedule mixes int and float, which strict promotion refuses
+        return cosine_rate(config.learning_rate, jnp.minimum(count, config.steps).astype(dtype) / config.steps)
 
     optimiser = optax.adam(schedule)
     state = optimiser.init(params)

@@ -47,6 +47,12 @@ def sample_distances(
     return near[:, None] + span * u, jnp.broadcast_to(span / n_samples, (near.shape[0], n_samples))
 
 
+def _sample_points(origins, directions, near, far, n_samples: int, key):
+    """The sample points (r * s, 3) of every ray, flattened, and their bins' lengths (r, s)."""
+    t, delta = sample_distances(near, far, n_samples, key)
+    return (origins[:, None, :] + t[..., None] * directions[:, None, :]).reshape(-1, 3), delta
+
+
 def composite(sigma: Float[Array, "r s"], delta: Float[Array, "r s"]) -> Float[Array, "r s"]:
     """The samples' weights w_i = T_i (1 - exp(-sigma_i delta_i)) (their sum is the opacity)."""
     tau = sigma * delta
@@ -67,9 +73,8 @@ def render_opacity(
 
     `sigma_fn` maps world points (n, 3) to optical densities (n,) (1/m).
     """
-    t, delta = sample_distances(near, far, n_samples, key)
-    x = origins[:, None, :] + t[..., None] * directions[:, None, :]
-    sigma = sigma_fn(x.reshape(-1, 3)).reshape(t.shape)
+    x, delta = _sample_points(origins, directions, near, far, n_samples, key)
+    sigma = sigma_fn(x).reshape(delta.shape)
     return -jnp.expm1(-jnp.sum(sigma * delta, axis=-1))
 
 
@@ -87,10 +92,10 @@ def render_rgb(
 
     `sigma_colour_fn` maps world points (n, 3) to (optical densities (n,) in 1/m, colours (n, 3)).
     """
-    t, delta = sample_distances(near, far, n_samples, key)
-    x = origins[:, None, :] + t[..., None] * directions[:, None, :]
-    sigma, colour = sigma_colour_fn(x.reshape(-1, 3))
-    w = composite(sigma.reshape(t.shape), delta)
+    x, delta = _sample_points(origins, directions, near, far, n_samples, key)
+    sigma, colour = sigma_colour_fn(x)
+    w = composite(sigma.reshape(delta.shape), delta)
     opacity = jnp.sum(w, axis=-1)
-    rgb = jnp.sum(w[..., None] * colour.reshape(*t.shape, 3), axis=1) + (1.0 - opacity)[:, None] * background[None, :]
+    rgb = jnp.sum(w[..., None] * colour.reshape(*delta.shape, 3), axis=1)
+    rgb = rgb + (1.0 - opacity)[:, None] * background[None, :]
     return rgb, opacity

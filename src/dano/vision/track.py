@@ -23,6 +23,7 @@ or any field whose inside is at its peak works; its units do not matter.
 """
 
 import dataclasses
+import functools
 import time
 
 import jax
@@ -38,6 +39,7 @@ from dano.fields.grid import as_grid
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul, quat_to_mat
 from dano.surface import field_peak
 from dano.vision.data import Camera, camera_rays
+from dano.vision.fit import cosine_rate
 from dano.vision.render import render_opacity
 
 
@@ -221,7 +223,7 @@ def track(
             delta, state = carry
             with jax.numpy_dtype_promotion("standard"):  # optax raises floats to int powers
                 direction, state = optimiser.update(jax.grad(loss)(delta), state)
-            rate = config.learning_rate * (0.05 + 0.475 * (1.0 + jnp.cos(jnp.pi * i / n)))
+            rate = cosine_rate(config.learning_rate, i / n)
             return delta - rate * direction, state
 
         delta = jnp.zeros(6, dtype=base_pos.dtype)
@@ -257,11 +259,12 @@ def _frame_losses(s: Silhouette, positions, quats, targets, weight):
 
 def refine(s: Silhouette, positions, quats, targets, config: TrackConfig):
     """All poses together: the frames' losses plus `smoothness` times the mean squared second
-    difference of the pose increments (positions in radius units, rotation vectors in rad)."""
+    difference of the poses (positions in radius units, frame-to-frame rotation vectors in rad)."""
     optimiser = optax.adam(0.25 * config.learning_rate)
+    moved = jax.vmap(functools.partial(_pose, s))  # every frame's pose after its increment
 
     def loss(delta):
-        pos, quat = jax.vmap(lambda p, q, d: _pose(s, p, q, d))(positions, quats, delta)
+        pos, quat = moved(positions, quats, delta)
         fit = jnp.mean(_frame_losses(s, pos, quat, targets, config.barycentre_weight))
         velocity = (pos[1:] - pos[:-1]) / s.radius
         spin = quat_log(quat_mul(quat[1:], quat_conj(quat[:-1])))  # rotation from frame to frame, rad
@@ -277,7 +280,7 @@ def refine(s: Silhouette, positions, quats, targets, config: TrackConfig):
             return optax.apply_updates(delta, updates), state
 
         delta, _ = jax.lax.fori_loop(0, config.refine_iterations, body, (delta, optimiser.init(delta)))
-        return jax.vmap(lambda p, q, d: _pose(s, p, q, d))(positions, quats, delta)
+        return moved(positions, quats, delta)
 
     pos, quat = run(jnp.zeros((len(positions), 6), dtype=positions.dtype))
     return pos, quat / jnp.linalg.norm(quat, axis=-1, keepdims=True)
