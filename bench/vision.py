@@ -67,7 +67,7 @@ def track_bench(mesh, folder: Path) -> None:
     camera = camera_from_fov(128, 96, np.radians(50.0), look_at([0.07, -0.55, 0.3], [0.07, 0.0, 0.05]))
     render_video(mesh, np.concatenate([pos, quat], axis=1), camera, folder / "video", floor=True, progress=False)
     masks = load_masks(folder / "video" / "masks", n, (96, 128))
-    field = mesh_field(mesh, resolution=64, progress=False)
+    field = mesh_field(mesh, resolution=128, progress=False)
     size = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))
     for config in (TrackConfig(), TrackConfig(max_size=64)):
         r = track(field, camera, masks, config, init=(pos[0], quat[0]), progress=False)

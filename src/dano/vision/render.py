@@ -78,6 +78,23 @@ def render_opacity(
     return -jnp.expm1(-jnp.sum(sigma * delta, axis=-1))
 
 
+def render_peak(
+    fn,
+    origins: Float[Array, "r 3"],
+    directions: Float[Array, "r 3"],
+    near: Float[Array, " r"],
+    far: Float[Array, " r"],
+    n_samples: int,
+) -> Float[Array, " r"]:
+    """The largest value of `fn` (world points (n, 3) -> (n,)) at each ray's `n_samples` bin midpoints.
+
+    The hard-surface limit of accumulated opacity: a ray is opaque where it meets the object at all,
+    i.e. where the largest occupancy along it is above one half.
+    """
+    x, delta = _sample_points(origins, directions, near, far, n_samples, None)
+    return jnp.max(fn(x).reshape(delta.shape), axis=-1)
+
+
 def render_rgb(
     sigma_colour_fn,
     origins: Float[Array, "r 3"],

@@ -14,12 +14,15 @@ Beyond the paper, `refine` optimises all poses together: the same loss summed ov
 penalty on the poses' second differences (accelerations), which removes frame-to-frame jitter.
 
 The field is queried through a baked grid (`as_grid`) so a render costs a few gathers per sample.
-The field is read as an occupancy, its surface at half its peak: the optical density is
-`sharpness * smoothstep(2 phi / peak - 1/2)` (0 below a quarter of the peak, full above three
-quarters), so the silhouette's edge is the surface (a soft edge
-rendered as is would grow the silhouette, and the tracker would push the object away from the
-camera to shrink it). A mesh's occupancy field, a solidified fitted field (`dano.vision.fit.solidify`)
-or any field whose inside is at its peak works; its units do not matter.
+The field is read as an occupancy o = phi / peak, its surface at o = 1/2, and rendered in the
+hard-surface limit of accumulated opacity: a pixel's opacity is smoothstep((m - 1/4) / (1/2)) of the
+largest occupancy m along its ray (`render_peak`). A ray that grazes the surface has m = 1/2 and
+opacity 1/2, so the silhouette's edge is the surface itself, blurred over the field's own soft
+boundary for a gradient. (Integrating an optical density instead, as volume rendering does, lets
+grazing rays gather opacity in the soft boundary outside the surface: the silhouette grows by about a
+voxel and the tracker pushes the object away from the camera to shrink it, 1 cm at 0.6 m in our
+measurements.) A mesh's occupancy field, a solidified fitted field (`dano.vision.fit.solidify`) or
+any field whose inside is at its peak works; its units do not matter.
 """
 
 import dataclasses
@@ -40,7 +43,7 @@ from dano.math import quat_conj, quat_exp, quat_log, quat_mul, quat_to_mat
 from dano.surface import field_peak
 from dano.vision.data import Camera, camera_rays
 from dano.vision.fit import cosine_rate
-from dano.vision.render import render_opacity
+from dano.vision.render import render_peak
 
 
 class TrackError(DanoError):
@@ -57,9 +60,9 @@ class TrackConfig:
             radius and rotations in radians, so one rate suits both.
         n_samples: samples per ray through the object's bounding sphere.
         barycentre_weight: weight of the barycentre term.
-        max_size: masks are box-averaged down until their longest side is at most this (pixels).
+        max_size: the tracker looks at a window around the object (`windows`); the masks are
+            box-averaged down until the window's longest side is at most this (pixels).
         grid: nodes along each side of the baked field grid.
-        sharpness: optical density inside the object, in 1/radius.
         refine_iterations: Adam steps of the joint refinement over all frames (0: none).
         smoothness: weight of the acceleration penalty in the refinement (per frame, in radius units).
     """
@@ -70,8 +73,7 @@ class TrackConfig:
     n_samples: int = 48
     barycentre_weight: float = 1.0
     max_size: int = 128
-    grid: int = 64
-    sharpness: float = 200.0
+    grid: int = 128
     refine_iterations: int = 0
     smoothness: float = 1.0
 
@@ -85,7 +87,6 @@ class Silhouette:
     uv: Float[Array, "r 2"]
     field: AbstractField
     peak: float
-    sharpness: float
     centre: Float[Array, " 3"]
     radius: float
     n_samples: int
@@ -101,12 +102,12 @@ def silhouette(field: AbstractField, camera: Camera, config: TrackConfig) -> Sil
     uv = np.stack(np.meshgrid(np.arange(camera.width) + 0.5, np.arange(camera.height) + 0.5), -1).reshape(-1, 2)
     return Silhouette(
         jnp.asarray(origins), jnp.asarray(directions), jnp.asarray(uv / [camera.width, camera.height]),
-        grid, peak, config.sharpness / radius, jnp.asarray(0.5 * (lo + hi)), radius, config.n_samples,
+        grid, peak, jnp.asarray(0.5 * (lo + hi)), radius, config.n_samples,
     )  # fmt: skip
 
 
 def render_silhouette(s: Silhouette, position: Float[Array, " 3"], quat: Float[Array, " 4"]) -> Float[Array, " r"]:
-    """Accumulated opacity (r,) of the field at pose (position, quat) of its frame, world."""
+    """Opacity (r,) of the field at pose (position, quat) of its frame (world): its silhouette."""
     rot = quat_to_mat(quat)
     centre = position + rot @ s.centre
     # The rays' path through the object's bounding sphere.
@@ -116,12 +117,11 @@ def render_silhouette(s: Silhouette, position: Float[Array, " 3"], quat: Float[A
     half = jnp.where(h2 > 0, jnp.sqrt(jnp.where(h2 > 0, h2, 1.0)), 0.0)  # 0 for a miss, and a finite gradient
     near, far = jnp.maximum(along - half, 0.0), jnp.maximum(along + half, 0.0)
 
-    def sigma(x):
-        occupancy = s.field((x - position[None, :]) @ rot) / s.peak
-        t = jnp.clip(2.0 * occupancy - 0.5, 0.0, 1.0)
-        return s.sharpness * t * t * (3.0 - 2.0 * t)
+    def occupancy(x):
+        return s.field((x - position[None, :]) @ rot) / s.peak
 
-    return render_opacity(sigma, s.origins, s.directions, near, far, s.n_samples)
+    t = jnp.clip(2.0 * render_peak(occupancy, s.origins, s.directions, near, far, s.n_samples) - 0.5, 0.0, 1.0)
+    return t * t * (3.0 - 2.0 * t)
 
 
 def mask_loss(s: Silhouette, opacity: Float[Array, " r"], mask: Float[Array, " r"], weight: float) -> Float[Array, ""]:
@@ -148,10 +148,8 @@ class TrackResult:
     seconds: float
 
 
-def downsample(masks: np.ndarray, camera: Camera, max_size: int) -> tuple[np.ndarray, Camera]:
-    """Box-averages masks (n, h, w) by the smallest integer factor that brings their longest side to at
-    most `max_size`, and scales the camera's intrinsics to match."""
-    factor = max(1, -(-max(camera.width, camera.height) // max_size))
+def downsample(masks: np.ndarray, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
+    """Box-averages masks (n, h, w) by an integer `factor` and scales the camera's intrinsics to match."""
     if factor == 1:
         return masks, camera
     n, h, w = masks.shape
@@ -162,6 +160,40 @@ def downsample(masks: np.ndarray, camera: Camera, max_size: int) -> tuple[np.nda
         cx=camera.cx / factor, cy=camera.cy / factor,
     )  # fmt: skip
     return small, scaled
+
+
+def windows(masks: np.ndarray, margin: float = 0.3) -> tuple[tuple[int, int], np.ndarray]:
+    """One window size for every frame and each frame's window: the largest bounding box of the masks
+    (n, h, w), grown on every side by `margin` times its longest side and clipped to the image; each
+    frame's window is centred on its mask's box and kept inside the image.
+
+    Returns:
+        (height, width) of the windows, and their top-left corners (n, 2) as (row, column).
+    """
+    n, h, w = masks.shape
+    rows, cols = masks.max(axis=2) > 0, masks.max(axis=1) > 0
+    r0, r1 = rows.argmax(axis=1), h - rows[:, ::-1].argmax(axis=1)
+    c0, c1 = cols.argmax(axis=1), w - cols[:, ::-1].argmax(axis=1)
+    pad = int(np.ceil(margin * max((r1 - r0).max(), (c1 - c0).max())))
+    height, width = min(h, int((r1 - r0).max()) + 2 * pad), min(w, int((c1 - c0).max()) + 2 * pad)
+    top = np.clip((r0 + r1 - height) // 2, 0, h - height)
+    left = np.clip((c0 + c1 - width) // 2, 0, w - width)
+    return (height, width), np.stack([top, left], axis=1)
+
+
+def crop(s: Silhouette, masks: np.ndarray, size: tuple[int, int], corners: np.ndarray, width: int):
+    """Per frame: the window's rays (origins, directions, uv stacked over frames) and its mask pixels."""
+    rows = corners[:, :1, None] + np.arange(size[0])[None, :, None]
+    cols = corners[:, 1:, None] + np.arange(size[1])[None, None, :]
+    index = (rows * width + cols).reshape(len(corners), -1)  # (n, window pixels) into the image
+    targets = np.take_along_axis(masks.reshape(len(masks), -1), index, axis=1)
+    rays = (s.origins[index], s.directions[index], s.uv[index])
+    return rays, jnp.asarray(targets)
+
+
+def _windowed(s: Silhouette, rays) -> Silhouette:
+    origins, directions, uv = rays
+    return dataclasses.replace(s, origins=origins, directions=directions, uv=uv)
 
 
 def initial_pose(s: Silhouette, mask: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -208,16 +240,21 @@ def track(
     empty = np.flatnonzero(masks.reshape(len(masks), -1).max(axis=1) <= 0)
     if len(empty):
         raise TrackError(f"mask of frame {int(empty[0])} is empty: the object must be visible in every frame")
-    small, cam = downsample(masks, camera, config.max_size)
+    (height, width), _ = windows(masks)
+    factor = max(1, -(-max(height, width) // config.max_size))
+    small, cam = downsample(masks, camera, factor)
     s = silhouette(field, cam, config)
-    targets = jnp.asarray(small.reshape(len(small), -1))
+    size, corners = windows(small)
+    rays, targets = crop(s, small, size, corners, cam.width)
     optimiser = optax.scale_by_adam()
 
     @jax.jit
-    def solve(base_pos, base_quat, target, n):
+    def solve(base_pos, base_quat, rays_k, target, n):
+        s_k = _windowed(s, rays_k)
+
         def loss(delta):
             pos, quat = _pose(s, base_pos, base_quat, delta)
-            return mask_loss(s, render_silhouette(s, pos, quat), target, config.barycentre_weight)
+            return mask_loss(s_k, render_silhouette(s_k, pos, quat), target, config.barycentre_weight)
 
         def body(i, carry):  # Adam with the rate decaying along a cosine to 5 %, so the pose settles
             delta, state = carry
@@ -240,24 +277,30 @@ def track(
             guess_pos = 2 * positions[-1] - positions[-2]
             guess_quat = quat_mul(quat_mul(quats[-1], quat_conj(quats[-2])), quats[-1])
         n = config.first_iterations if k == 0 else config.iterations
-        p, q, value = solve(guess_pos, guess_quat, targets[k], n)
+        rays_k = tuple(r[k] for r in rays)
+        p, q, value = solve(guess_pos, guess_quat, rays_k, targets[k], n)
         positions.append(p)
         quats.append(q)
         losses.append(float(value))
         pos, quat = p, q
     positions_a, quats_a = jnp.stack(positions), jnp.stack(quats)
     if config.refine_iterations > 0:
-        positions_a, quats_a = refine(s, positions_a, quats_a, targets, config)
-        losses = [float(v) for v in _frame_losses(s, positions_a, quats_a, targets, config.barycentre_weight)]
+        positions_a, quats_a = refine(s, rays, positions_a, quats_a, targets, config)
+        losses = [float(v) for v in _frame_losses(s, rays, positions_a, quats_a, targets, config.barycentre_weight)]
     return TrackResult(np.asarray(positions_a), np.asarray(quats_a), np.asarray(losses), time.perf_counter() - start)
 
 
-def _frame_losses(s: Silhouette, positions, quats, targets, weight):
-    render = jax.vmap(lambda p, q: render_silhouette(s, p, q))
-    return jax.vmap(lambda o, m: mask_loss(s, o, m, weight))(render(positions, quats), targets)
+def _frame_losses(s: Silhouette, rays, positions, quats, targets, weight):
+    """Each frame's loss, its window's rays stacked over frames in `rays`."""
+
+    def one(rays_k, p, q, target):
+        s_k = _windowed(s, rays_k)
+        return mask_loss(s_k, render_silhouette(s_k, p, q), target, weight)
+
+    return jax.vmap(one)(rays, positions, quats, targets)
 
 
-def refine(s: Silhouette, positions, quats, targets, config: TrackConfig):
+def refine(s: Silhouette, rays, positions, quats, targets, config: TrackConfig):
     """All poses together: the frames' losses plus `smoothness` times the mean squared second
     difference of the poses (positions in radius units, frame-to-frame rotation vectors in rad)."""
     optimiser = optax.adam(0.25 * config.learning_rate)
@@ -265,7 +308,7 @@ def refine(s: Silhouette, positions, quats, targets, config: TrackConfig):
 
     def loss(delta):
         pos, quat = moved(positions, quats, delta)
-        fit = jnp.mean(_frame_losses(s, pos, quat, targets, config.barycentre_weight))
+        fit = jnp.mean(_frame_losses(s, rays, pos, quat, targets, config.barycentre_weight))
         velocity = (pos[1:] - pos[:-1]) / s.radius
         spin = quat_log(quat_mul(quat[1:], quat_conj(quat[:-1])))  # rotation from frame to frame, rad
         accel = jnp.concatenate([velocity[1:] - velocity[:-1], spin[1:] - spin[:-1]], axis=1)
