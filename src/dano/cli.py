@@ -131,12 +131,12 @@ def _trajopt(args: argparse.Namespace) -> None:
     import dataclasses
 
     from dano.io import load_dano
-    from dano.trajopt.push import DEFAULT_OPTIONS, PushTask, push_problem, render_push, solve_push
+    from dano.trajopt.push import PushTask, default_options, push_problem, render_push, solve_push
 
     obj = load_dano(args.dano) if args.dano else _default_bunny()
     task = PushTask(goal=tuple(args.goal), horizon=args.horizon, dt=args.dt, goal_as_constraint=not args.goal_cost)
     push = push_problem(obj, args.robot, task, friction=args.friction)
-    options = dataclasses.replace(DEFAULT_OPTIONS, max_iterations=args.max_iterations)
+    options = dataclasses.replace(default_options(args.robot), max_iterations=args.max_iterations)
     result = solve_push(push, options, progress=not args.json)
     if args.video:
         render_push(push, result, args.video, progress=not args.json)

@@ -70,6 +70,10 @@ class Options:
         penalty: initial ρ; `penalty_scale` multiplies it at each update, up to `penalty_max`.
         regularization: initial Levenberg term on Q_uu, kept in [reg_min, reg_max].
         line_search: step sizes tried, largest first; `armijo`: accepted fraction of the predicted decrease.
+        jacobian_batch: time steps whose dynamics Jacobians are taken together (`jax.lax.map`'s
+            batch size); None: all at once (`jax.vmap`). Vmapping a long simulated step over time
+            turns its branches into selects and its loops into the longest one; for a robot arm in
+            contact, one step at a time (1) is the fast choice.
     """
 
     max_iterations: int = 300
@@ -85,6 +89,7 @@ class Options:
     reg_max: float = 1e8
     line_search: tuple[float, ...] = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.015625, 0.0078125)
     armijo: float = 1e-4
+    jacobian_batch: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,7 +141,7 @@ def _width(fn, *args) -> int:
 class _Compiled:
     """The jitted pieces of one problem (built once; shapes fixed by x0 and the controls)."""
 
-    def __init__(self, problem: OptimalControlProblem, n: int, m: int):
+    def __init__(self, problem: OptimalControlProblem, n: int, m: int, jacobian_batch: int | None = None):
         T = problem.horizon
         self.p = _width(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
         self.q = _width(problem.terminal_constraints, jnp.zeros(n))
@@ -173,7 +178,12 @@ class _Compiled:
 
         def expand(xs, us, lam, nu, rho):
             """Dynamics Jacobians and the augmented cost's gradients and Hessians along (xs, us)."""
-            A, B = jax.vmap(jax.jacfwd(problem.dynamics, argnums=(0, 1)))(xs[:-1], us, ts)
+            jac = jax.jacfwd(problem.dynamics, argnums=(0, 1))
+            if jacobian_batch is None:
+                A, B = jax.vmap(jac)(xs[:-1], us, ts)
+            else:
+                batch = None if jacobian_batch == 1 else jacobian_batch  # 1: a plain scan, branches kept
+                A, B = jax.lax.map(lambda a: jac(*a), (xs[:-1], us, ts), batch_size=batch)
             c = jax.vmap(c_fn)(xs[:-1], us, ts)
             active = active_set(c, lam)
             z = jnp.concatenate([xs[:-1], us], axis=1)
@@ -259,7 +269,7 @@ def solve(
     if not bool(jnp.all(jnp.isfinite(x0))):
         raise TrajoptError("the initial state is not finite")
     n, m = x0.shape[0], us.shape[1]
-    fn = _Compiled(problem, n, m)
+    fn = _Compiled(problem, n, m, options.jacobian_batch)
     xs = fn.rollout(x0, us)
     if not bool(jnp.all(jnp.isfinite(xs))):
         raise TrajoptError("the initial controls' rollout is not finite")

@@ -287,8 +287,16 @@ DEFAULT_OPTIONS = Options(max_iterations=150, penalty=100.0)
 """iLQR settings for the push: ρ starts high enough that the goal matters from the first iteration."""
 
 
-def solve_push(push: PushProblem, options: Options = DEFAULT_OPTIONS, progress: bool = False) -> PushResult:
-    """Solves the push from its warm start and replays the controls open loop."""
+def default_options(robot: str) -> Options:
+    """`DEFAULT_OPTIONS`, with the Panda's dynamics Jacobians taken one frame at a time (vmapped over
+    the horizon, its contact branches and solver loops cost many times more)."""
+    return DEFAULT_OPTIONS if robot == "sphere" else dataclasses.replace(DEFAULT_OPTIONS, jacobian_batch=1)
+
+
+def solve_push(push: PushProblem, options: Options | None = None, progress: bool = False) -> PushResult:
+    """Solves the push from its warm start (`default_options(robot)` unless given) and replays the
+    controls open loop."""
+    options = default_options(push.robot) if options is None else options
     sol = solve(push.problem, jnp.asarray(push.x0), jnp.asarray(push.initial_controls), options, progress=progress)
     final = np.asarray(push.object_position(sol.states[-1]))
     ee = np.asarray(push.effector(jnp.asarray(sol.states[-1]))[0])
