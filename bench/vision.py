@@ -86,12 +86,13 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=1000)
     p.add_argument("--parts", default="fit,track", help="which benchmarks to run (comma-separated)")
     args = p.parse_args()
+    parts = args.parts.split(",")
     jax.config.update("jax_enable_x64", True)
     mesh = bunny_mesh()
     with tempfile.TemporaryDirectory() as tmp:
-        if "fit" in args.parts.split(","):
+        if "fit" in parts:
             fit_bench(mesh, Path(tmp), args.iou, args.every, args.steps)
-        if "track" in args.parts.split(","):
+        if "track" in parts:
             track_bench(mesh, Path(tmp))
 
 

@@ -87,11 +87,18 @@ def _errors(result, pos, quat):
     return position, angle
 
 
-def test_tracking_a_rendered_box_sliding_and_turning(tmp_path):
+@pytest.fixture(scope="module")
+def box_video(tmp_path_factory):
+    """The box sliding and turning over 8 frames: true poses, the camera, its 64 x 48 masks."""
     pos, quat = _slide_and_turn(BOX, 8)
     camera = camera_from_fov(64, 48, np.radians(50.0), look_at([0.05, -0.2, 0.12], [0.05, 0.0, 0.02]))
-    render_video(BOX, np.concatenate([pos, quat], axis=1), camera, tmp_path / "video", floor=True, progress=False)
-    masks = load_masks(tmp_path / "video" / "masks", 8, (48, 64))
+    folder = tmp_path_factory.mktemp("box") / "video"
+    render_video(BOX, np.concatenate([pos, quat], axis=1), camera, folder, floor=True, progress=False)
+    return pos, quat, camera, load_masks(folder / "masks", 8, (48, 64))
+
+
+def test_tracking_a_rendered_box_sliding_and_turning(box_video):
+    pos, quat, camera, masks = box_video
     field = mesh_field(BOX, resolution=80, progress=False)
     result = track(field, camera, masks, init=(pos[0], quat[0]), progress=False)
     position, angle = _errors(result, pos, quat)
@@ -100,15 +107,12 @@ def test_tracking_a_rendered_box_sliding_and_turning(tmp_path):
     assert result.losses.max() < 0.02
 
 
-def test_refine_pulls_noisy_poses_back_onto_the_masks(tmp_path):
-    pos, quat = _slide_and_turn(BOX, 8)
-    camera = camera_from_fov(64, 48, np.radians(50.0), look_at([0.05, -0.2, 0.12], [0.05, 0.0, 0.02]))
-    render_video(BOX, np.concatenate([pos, quat], axis=1), camera, tmp_path / "video", floor=True, progress=False)
-    masks = load_masks(tmp_path / "video" / "masks", 8, (48, 64))
+def test_refine_pulls_noisy_poses_back_onto_the_masks(box_video):
+    pos, quat, camera, masks = box_video
     config = TrackConfig(refine_iterations=80)
     s = silhouette(mesh_field(BOX, resolution=80, progress=False), camera, config)
     size, corners = windows(masks)
-    rays, targets = crop(s, masks, size, corners, camera.width)
+    rays, targets = crop(s, masks, size, corners)
     noisy = pos + np.random.default_rng(0).normal(scale=0.004, size=pos.shape)
     refined, quats = refine(s, rays, jnp.asarray(noisy), jnp.asarray(quat), targets, config)
     before = np.linalg.norm(noisy - pos, axis=1).mean()

@@ -181,8 +181,10 @@ def windows(masks: np.ndarray, margin: float = 0.3) -> tuple[tuple[int, int], np
     return (height, width), np.stack([top, left], axis=1)
 
 
-def crop(s: Silhouette, masks: np.ndarray, size: tuple[int, int], corners: np.ndarray, width: int):
-    """Per frame: the window's rays (origins, directions, uv stacked over frames) and its mask pixels."""
+def crop(s: Silhouette, masks: np.ndarray, size: tuple[int, int], corners: np.ndarray):
+    """Per frame: the window's rays (origins, directions, uv stacked over frames) and its mask pixels;
+    `s` renders the whole image of the masks (n, h, w), `size` and `corners` are from `windows`."""
+    width = masks.shape[2]
     rows = corners[:, :1, None] + np.arange(size[0])[None, :, None]
     cols = corners[:, 1:, None] + np.arange(size[1])[None, None, :]
     index = (rows * width + cols).reshape(len(corners), -1)  # (n, window pixels) into the image
@@ -191,9 +193,11 @@ def crop(s: Silhouette, masks: np.ndarray, size: tuple[int, int], corners: np.nd
     return rays, jnp.asarray(targets)
 
 
-def _windowed(s: Silhouette, rays) -> Silhouette:
+def _window_loss(s: Silhouette, rays, position, quat, target, weight: float):
+    """`mask_loss` of the pose seen through one frame's window (its rays, as from `crop`)."""
     origins, directions, uv = rays
-    return dataclasses.replace(s, origins=origins, directions=directions, uv=uv)
+    s = dataclasses.replace(s, origins=origins, directions=directions, uv=uv)
+    return mask_loss(s, render_silhouette(s, position, quat), target, weight)
 
 
 def initial_pose(s: Silhouette, mask: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -245,16 +249,14 @@ def track(
     small, cam = downsample(masks, camera, factor)
     s = silhouette(field, cam, config)
     size, corners = windows(small)
-    rays, targets = crop(s, small, size, corners, cam.width)
+    rays, targets = crop(s, small, size, corners)
     optimiser = optax.scale_by_adam()
 
     @jax.jit
     def solve(base_pos, base_quat, rays_k, target, n):
-        s_k = _windowed(s, rays_k)
-
         def loss(delta):
             pos, quat = _pose(s, base_pos, base_quat, delta)
-            return mask_loss(s_k, render_silhouette(s_k, pos, quat), target, config.barycentre_weight)
+            return _window_loss(s, rays_k, pos, quat, target, config.barycentre_weight)
 
         def body(i, carry):  # Adam with the rate decaying along a cosine to 5 %, so the pose settles
             delta, state = carry
@@ -292,12 +294,7 @@ def track(
 
 def _frame_losses(s: Silhouette, rays, positions, quats, targets, weight):
     """Each frame's loss, its window's rays stacked over frames in `rays`."""
-
-    def one(rays_k, p, q, target):
-        s_k = _windowed(s, rays_k)
-        return mask_loss(s_k, render_silhouette(s_k, p, q), target, weight)
-
-    return jax.vmap(one)(rays, positions, quats, targets)
+    return jax.vmap(lambda r, p, q, m: _window_loss(s, r, p, q, m, weight))(rays, positions, quats, targets)
 
 
 def refine(s: Silhouette, rays, positions, quats, targets, config: TrackConfig):
