@@ -65,7 +65,7 @@ def test_the_bunny_fitted_from_50_views_gives_the_mesh_dano(tmp_path, bunny_mesh
     """Issue acceptance: centre of mass within 2 % of the box diagonal, principal moments within 5 %."""
     render_views(bunny_mesh, tmp_path / "bunny", n_views=50, resolution=64, progress=False)
     views = load_nerf_synthetic(tmp_path / "bunny")
-    result = fit_field(views, FitConfig(steps=1000), key=jax.random.key(0), progress=False)
+    result = fit_field(views, FitConfig(steps=500), key=jax.random.key(0), progress=False)  # 0.2 % and 1.4 % measured
     solid = solidify(result.field, views)
     d = dano.build_dano(solid.field, n_points=3000, mass=1.0)
     diagonal = np.linalg.norm(np.ptp(bunny_mesh.vertices, axis=0))
