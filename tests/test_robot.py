@@ -62,3 +62,14 @@ def test_mjcf_robot_with_primitive_links(cube, tmp_path):
     traj = sim.run(150, ctrl=jnp.full((150, 1), 1.2))  # swing the capsule towards +y
     a = sim.world.dano_qpos[0]
     assert float(traj.qpos[-1, a + 1]) > 0.08 + 0.02  # the cube was swept along +y
+
+
+def test_a_servo_too_stiff_for_its_joint_is_refused(cube):
+    # Without the armature, the hand's joint (M = 0.0067 kg m²) under kv = 30 at 0.5 ms steps has
+    # kv h / M = 2.2: MuJoCo's explicit damping would ring up, so the scene is refused by name.
+    from dano.sim.scene import SceneError, compile_scene
+
+    scene = Scene(bodies=(DanoBody("cube", cube, pos=(0.5, 0, 0.1)),), robot=panda(armature=None))
+    with pytest.raises(SceneError, match="panda_joint7"):
+        compile_scene(scene)
+    compile_scene(Scene(bodies=scene.bodies, robot=panda()))  # 0.1 kg m² by default: accepted

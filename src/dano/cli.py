@@ -134,7 +134,8 @@ def _trajopt(args: argparse.Namespace) -> None:
     from dano.trajopt.push import PushTask, default_options, push_problem, render_push, solve_push
 
     obj = load_dano(args.dano) if args.dano else _default_bunny()
-    task = PushTask(goal=tuple(args.goal), horizon=args.horizon, dt=args.dt, goal_as_constraint=not args.goal_cost)
+    goal_as_constraint = False if args.goal_cost else None  # None: the robot's default
+    task = PushTask(goal=tuple(args.goal), horizon=args.horizon, dt=args.dt, goal_as_constraint=goal_as_constraint)
     push = push_problem(obj, args.robot, task, friction=args.friction)
     options = dataclasses.replace(default_options(args.robot), max_iterations=args.max_iterations)
     result = solve_push(push, options, progress=not args.json)
@@ -396,7 +397,9 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("--horizon", type=int, default=10, help="frames (default 10)")
     t.add_argument("--dt", type=float, default=0.08, help="seconds per frame (default 0.08)")
     t.add_argument("--friction", type=float, default=0.3)
-    t.add_argument("--goal-cost", action="store_true", help="the goal as a cost, not a constraint")
+    t.add_argument(
+        "--goal-cost", action="store_true", help="the goal as a cost, not a constraint (the Panda's default)"
+    )
     t.add_argument("--max-iterations", type=int, default=150)
     t.add_argument("--video", help="render the open-loop replay to this .mp4 or .gif")
     t.add_argument("--json", action="store_true",

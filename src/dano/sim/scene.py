@@ -105,6 +105,10 @@ class Robot:
         base_pos, base_quat: pose of the robot's root body in the world.
         qpos: initial joint positions (in joint order; missing ones are 0).
         kp, kv: position servo gains per joint (N m/rad, N m s/rad).
+        armature: rotor inertia added to each servoed joint (kg m², or kg for a slide), or None to
+            keep the file's. MuJoCo integrates the servo's damping kv explicitly, which is stable
+            only while kv h / M_jj < 2 (h the step, M_jj the joint's inertia); a light wrist joint
+            breaks that, and `compile_scene` refuses such a robot.
         gravity_compensation: cancel gravity on the robot's links (as a torque-controlled arm would).
         package_dirs: {package name: folder} for `package://name/...` paths.
         contact_bodies: names of the links whose geoms touch DANOs (empty: all). Each contact pair
@@ -118,13 +122,17 @@ class Robot:
     qpos: tuple[Number, ...] = ()
     kp: Number = 300.0
     kv: Number = 30.0
+    armature: Number | None = None
     gravity_compensation: bool = True
     package_dirs: tuple[tuple[str, str], ...] = ()
     contact_bodies: tuple[str, ...] = ()
 
 
 def panda(base_pos: Vec3 = (0.0, 0.0, 0.0), qpos: tuple[Number, ...] = (), **kwargs) -> Robot:
-    """The Franka Panda of `example-robot-data` (URDF, STL collision meshes)."""
+    """The Franka Panda of `example-robot-data` (URDF, STL collision meshes), with the 0.1 kg m²
+    armature per joint of MuJoCo Menagerie's Panda (the URDF has none; without it the hand's joint,
+    M_jj = 0.0067 kg m², is unstable under the default servo at 0.5 ms steps)."""
+    kwargs.setdefault("armature", 0.1)
     from importlib.metadata import PackageNotFoundError, distribution
     from pathlib import Path
 
@@ -473,6 +481,7 @@ def compile_scene(scene: Scene):
         robot_joints = [j for j in range(model.njnt) if model.jnt_bodyid[j] in ids]
         for j, value in zip(robot_joints, scene.robot.qpos, strict=False):
             qpos[model.jnt_qposadr[j]] = value
+        _check_servo_damping(model, qpos, float(scene.robot.kv))
     return model, world, params, qpos, qvel
 
 
@@ -488,7 +497,30 @@ def _prepare_robot(spec: mujoco.MjSpec, robot: Robot) -> list[str]:
         if joint.type in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
             act = spec.add_actuator(name=f"{joint.name}_servo", target=joint.name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
             act.set_to_position(kp=float(robot.kp), kv=float(robot.kv))
+            if robot.armature is not None:
+                joint.armature = float(robot.armature)
     return bodies
+
+
+def _check_servo_damping(model: mujoco.MjModel, qpos: np.ndarray, kv: float) -> None:
+    """Raises `SceneError` where a servo's damping is explicitly unstable: kv h / M_jj >= 2."""
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_forward(model, data)
+    M = np.zeros((model.nv, model.nv))
+    mujoco.mj_fullM(model, data, M)
+    for a in range(model.nu):
+        if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT:
+            continue
+        joint = int(model.actuator_trnid[a, 0])
+        dof = int(model.jnt_dofadr[joint])
+        ratio = kv * model.opt.timestep / M[dof, dof]
+        if ratio >= 2.0:
+            raise SceneError(
+                f"the servo of joint {model.joint(joint).name!r} is unstable: kv h / M = {kv:g} x "
+                f"{model.opt.timestep:g} s / {M[dof, dof]:.3g} = {ratio:.2f} >= 2 (MuJoCo integrates its "
+                "damping explicitly); give the robot an armature, a smaller kv, or a smaller time step"
+            )
 
 
 def _robot_geoms(model: mujoco.MjModel, bodies: list[str], robot: Robot | None) -> list[int]:

@@ -11,8 +11,9 @@ The outer loop adds to the cost the augmented-Lagrangian terms λᵀc + ½ ρ‖
 where active: c > 0 or λ > 0) and νᵀh + ½ ρ‖h‖², solves that by iLQR, then updates the multipliers
 λ ← max(0, λ + ρ c), ν ← ν + ρ h and raises ρ until the largest violation is below the tolerance.
 
-The inner iLQR: the dynamics linearised by `jax.jacfwd` (vmapped over time), the augmented cost
-expanded to second order by `jax.hessian`; a Riccati backward pass with Levenberg regularisation of
+The inner iLQR: the dynamics linearised by `jax.jacfwd` (vmapped over time), the cost expanded to
+second order by `jax.hessian` and the Lagrangian terms by Gauss-Newton (ρ CᵀC, C the active
+constraints' Jacobian); a Riccati backward pass with Levenberg regularisation of
 Q_uu (raised when Q_uu is not positive definite or a step fails, lowered after a good one); a
 backtracking line search on the closed-loop rollout accepting a step when the cost falls by a
 fraction of the quadratic model's prediction.
@@ -21,6 +22,7 @@ Every piece is jitted once per problem; the loops run in Python so a progress ba
 """
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 
@@ -47,6 +49,9 @@ class OptimalControlProblem:
         horizon: T.
         constraints: c(x, u, t) -> (p,), feasible where ≤ 0; or None.
         terminal_constraints: h(x) -> (q,), feasible where = 0; or None.
+        compiler_options: XLA options for jitting the solver's pieces, e.g.
+            `dano.sim.run.compiler_options(world)`: the same as the forward simulator's, so that an
+            open-loop replay there repeats the optimiser's arithmetic.
     """
 
     dynamics: Callable
@@ -55,6 +60,7 @@ class OptimalControlProblem:
     horizon: int
     constraints: Callable | None = None
     terminal_constraints: Callable | None = None
+    compiler_options: dict | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,13 +194,23 @@ class _Compiled:
             active = active_set(c, lam)
             z = jnp.concatenate([xs[:-1], us], axis=1)
 
-            def run_z(zt, t, lam_t, active_t):
-                return running(zt[:n], zt[n:], t, lam_t, rho, active_t)
+            def cost_z(zt, t):
+                return problem.cost(zt[:n], zt[n:], t)
 
-            g = jax.vmap(jax.grad(run_z))(z, ts, lam, active)
-            H = jax.vmap(jax.hessian(run_z))(z, ts, lam, active)
-            gT = jax.grad(terminal)(xs[-1], nu, rho)
-            HT = jax.hessian(terminal)(xs[-1], nu, rho)
+            def c_z(zt, t):
+                return c_fn(zt[:n], zt[n:], t)
+
+            # The Lagrangian terms to first order in c (Gauss-Newton, as ALTRO): their Hessian is
+            # rho C^T C over the active rows. Their exact Hessian adds (lam + rho c) * c'', which is
+            # indefinite for a nonlinear constraint (a link's height, a torque through the state)
+            # and would be met only by regularisation so large that the step vanishes.
+            C = jax.vmap(jax.jacfwd(c_z))(z, ts)  # (T, p, n + m)
+            g = jax.vmap(jax.grad(cost_z))(z, ts) + jnp.einsum("tpz,tp->tz", C, lam + rho * active * c)
+            H = jax.vmap(jax.hessian(cost_z))(z, ts) + rho * jnp.einsum("tpz,tp,tpy->tzy", C, active, C)
+            h = h_fn(xs[-1])
+            Ch = jax.jacfwd(h_fn)(xs[-1])  # (q, n)
+            gT = jax.grad(problem.terminal_cost)(xs[-1]) + Ch.T @ (nu + rho * h)
+            HT = jax.hessian(problem.terminal_cost)(xs[-1]) + rho * Ch.T @ Ch
             return A, B, g, H, gT, HT
 
         def backward(A, B, g, H, gT, HT, reg):
@@ -236,13 +252,14 @@ class _Compiled:
             _, (x_new, u_new) = jax.lax.scan(step, xs[0], (xs[:-1], us, k, K, ts))
             return jnp.concatenate([xs[:1], x_new], axis=0), u_new
 
-        self.rollout = jax.jit(lambda x0, us: rollout(problem, x0, us))
-        self.objective = jax.jit(objective)
-        self.violation = jax.jit(violation)
-        self.augmented = jax.jit(augmented)
-        self.expand = jax.jit(expand)
-        self.backward = jax.jit(backward)
-        self.forward = jax.jit(forward)
+        jit = functools.partial(jax.jit, compiler_options=problem.compiler_options)
+        self.rollout = jit(lambda x0, us: rollout(problem, x0, us))
+        self.objective = jit(objective)
+        self.violation = jit(violation)
+        self.augmented = jit(augmented)
+        self.expand = jit(expand)
+        self.backward = jit(backward)
+        self.forward = jit(forward)
 
 
 def solve(

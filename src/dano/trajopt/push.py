@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dano.sim.run import Simulation, at_interval, at_rest
+from dano.sim.run import Simulation, at_interval, at_rest, compiler_options
 from dano.sim.scene import Scene, panda
 from dano.sim.step import mjx_kinematics, scaled_model, step
 from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, solve
@@ -46,7 +46,10 @@ class PushTask:
         horizon: frames; dt: seconds per frame; substep: simulator step, s (≤ 0.5 ms: the contact's
             Jacobian needs it, see README).
         ee_goal: where the end effector should end (world, m); default where it starts.
-        goal_as_constraint: the DANO's final xy as an equality constraint (else a cost).
+        goal_as_constraint: the DANO's final xy as an equality constraint (True) or a cost of weight
+            `goal_weight` (False). None: the robot's default, a constraint for the sphere and a cost
+            for the Panda, whose contact through its hand's faceted hull is too rough near the goal
+            for the augmented Lagrangian to drive the miss below 1e-4 m (it stalls at millimetres).
         force_limit: |force| per axis for the sphere, N.
         clearance: lowest height of the end effector's lowest point, m.
         goal_weight, ee_weight, velocity_weight, effort_weight: cost weights (per m², m², (m/s)²,
@@ -58,7 +61,7 @@ class PushTask:
     dt: float = 0.08
     substep: float = 5e-4
     ee_goal: tuple[float, float, float] | None = None
-    goal_as_constraint: bool = True
+    goal_as_constraint: bool | None = None
     force_limit: float = 10.0
     clearance: float = 0.005
     goal_weight: float = 1e3
@@ -212,6 +215,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
     goal_j, ee_goal_j = jnp.asarray(goal_world), jnp.asarray(ee_goal)
     va = _dof(sim, a)
     reference_u = jnp.zeros(m_u) if robot == "sphere" else jnp.asarray(PANDA_HOME[:7])
+    goal_is_constraint = robot == "sphere" if task.goal_as_constraint is None else task.goal_as_constraint
 
     def cost(x, u, t):
         return task.effort_weight * jnp.sum((u - reference_u) ** 2)
@@ -220,15 +224,16 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         ee, ee_vel = effector(x)
         v = x[nq + va : nq + va + 6]
         c = task.ee_weight * jnp.sum((ee - ee_goal_j) ** 2) + task.velocity_weight * (v @ v + ee_vel @ ee_vel)
-        if not task.goal_as_constraint:
+        if not goal_is_constraint:
             c = c + task.goal_weight * jnp.sum((x[a : a + 2] - goal_j) ** 2)
         return c
 
     def constraints(x, u, t):
         return jnp.concatenate([input_limits(x, u), task.clearance - lowest(x)])
 
-    terminal = (lambda x: x[a : a + 2] - goal_j) if task.goal_as_constraint else None
-    problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal)
+    terminal = (lambda x: x[a : a + 2] - goal_j) if goal_is_constraint else None
+    options = compiler_options(world)
+    problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal, options)
     first = _warm_start(problem, x0, [guess(s) for s in scales], lambda x: x[a : a + 2] - goal_j)
     return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, effector)
 
@@ -243,7 +248,8 @@ def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np
     def final_miss(u):
         return jnp.linalg.norm(miss(rollout(problem, jnp.asarray(x0), u)[-1]))
 
-    misses = np.asarray(jax.jit(jax.vmap(final_miss))(jnp.asarray(np.stack(guesses))))
+    jitted = jax.jit(jax.vmap(final_miss), compiler_options=problem.compiler_options)
+    misses = np.asarray(jitted(jnp.asarray(np.stack(guesses))))
     misses = np.where(np.isfinite(misses), misses, np.inf)
     return guesses[int(np.argmin(misses))]
 
