@@ -152,15 +152,16 @@ def dano_pair_wrench(p: ContactParams, A: Body, B: Body, a: Frame, b: Frame, mod
     return _apply(p, at, psi, normal[:, None], a, b)
 
 
-def link_frame(link: LinkGeom, kin: mjx.Data, d: mjx.Data) -> Frame:
+def link_frame(link: LinkGeom, kin: mjx.Data) -> Frame:
     """Pose of a robot collision geom (current kinematics) and the velocity of its body.
 
-    MuJoCo's `cvel` (angular; linear at the subtree centre of mass of the body's root) is the one of
-    the last forward pass, i.e. one substep old: positions are exact, velocities lag by one substep.
+    `kin` comes from `link_motion`: `cvel` (angular; linear at the subtree centre of mass of the
+    body's root) of the current qpos and qvel. (`d.cvel` would be the last forward pass's, one
+    substep old, and for a state set from outside, as trajectory optimisation does, stale.)
     """
     x = kin.geom_xpos[link.geom]
-    w = d.cvel[link.body, :3]
-    v = d.cvel[link.body, 3:] + jnp.cross(w, x - d.subtree_com[link.root])
+    w = kin.cvel[link.body, :3]
+    v = kin.cvel[link.body, 3:] + jnp.cross(w, x - kin.subtree_com[link.root])
     return Frame(x, kin.geom_xmat[link.geom].reshape(3, 3), v, w)
 
 
@@ -197,7 +198,7 @@ def contact_xfrc(
         m: the model, needed when the world has a robot (for its link poses).
     """
     xfrc = jnp.zeros_like(d.xfrc_applied)
-    kin = mjx_kinematics(m, d) if world.links else None
+    kin = link_motion(m, d) if world.links else None
     frames = [free_frame(d.qpos, d.qvel, a, v) for a, v in zip(world.dano_qpos, world.dano_qvel, strict=True)]
     bodies = [
         Body(
@@ -222,7 +223,7 @@ def contact_xfrc(
             inv_mass = 1.0 / world.prim_mass[k]
         elif kind == "link":
             link = world.links[k]
-            b = link_frame(link, kin, d)
+            b = link_frame(link, kin)
             shape = link_shape(link, b)
 
             def touch(shape=shape, a=a, b=b, p=p, body=bodies[i]):
@@ -260,6 +261,12 @@ def mjx_kinematics(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """`mjx.kinematics` under standard promotion (see `mjx_step`)."""
     with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
         return mjx.kinematics(m, d)
+
+
+def link_motion(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """Poses and velocities (`cvel`, `subtree_com`) of the bodies at d's qpos and qvel."""
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        return mjx.com_vel(m, mjx.com_pos(m, mjx.kinematics(m, d)))
 
 
 def mjx_step(m: mjx.Model, d: mjx.Data) -> mjx.Data:
