@@ -36,10 +36,10 @@ def main() -> None:
         push = push_problem(bunny, robot, PushTask(goal=goals[robot], horizon=args.horizon))
         setup = time.perf_counter() - start
         cold = solve_push(push, default_options(robot), progress=True)
-        warm = solve_push(push, default_options(robot)) if args.warm else cold
-        s = warm.solution
+        result = solve_push(push, default_options(robot)) if args.warm else cold  # the figures come from the last solve
+        s = result.solution
         warm_s = s.seconds if args.warm else float("nan")
-        errors = (warm.final_error_m, warm.ee_error_m, warm.replay_gap_m)
+        errors = (result.final_error_m, result.ee_error_m, result.replay_gap_m)
         counts = (s.iterations, s.outer, s.max_violation)
         rows.append((robot, setup, cold.solution.seconds, warm_s, *counts, *errors, s.converged))
         print(f"{robot}: {s.message}", flush=True)

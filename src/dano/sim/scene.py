@@ -481,7 +481,7 @@ def compile_scene(scene: Scene):
         robot_joints = [j for j in range(model.njnt) if model.jnt_bodyid[j] in ids]
         for j, value in zip(robot_joints, scene.robot.qpos, strict=False):
             qpos[model.jnt_qposadr[j]] = value
-        _check_servo_damping(model, qpos, float(scene.robot.kv))
+        _check_servo_damping(model, qpos)
     return model, world, params, qpos, qvel
 
 
@@ -502,8 +502,9 @@ def _prepare_robot(spec: mujoco.MjSpec, robot: Robot) -> list[str]:
     return bodies
 
 
-def _check_servo_damping(model: mujoco.MjModel, qpos: np.ndarray, kv: float) -> None:
-    """Raises `SceneError` where a servo's damping is explicitly unstable: kv h / M_jj >= 2."""
+def _check_servo_damping(model: mujoco.MjModel, qpos: np.ndarray) -> None:
+    """Raises `SceneError` where a joint servo's damping (kv = -biasprm[2]) is explicitly unstable
+    at `qpos`: kv h / M_jj >= 2."""
     data = mujoco.MjData(model)
     data.qpos[:] = qpos
     mujoco.mj_forward(model, data)
@@ -514,6 +515,7 @@ def _check_servo_damping(model: mujoco.MjModel, qpos: np.ndarray, kv: float) -> 
             continue
         joint = int(model.actuator_trnid[a, 0])
         dof = int(model.jnt_dofadr[joint])
+        kv = -float(model.actuator_biasprm[a, 2])
         ratio = kv * model.opt.timestep / M[dof, dof]
         if ratio >= 2.0:
             raise SceneError(
