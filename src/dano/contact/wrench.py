@@ -59,6 +59,10 @@ class ContactParams(eqx.Module):
     trajectories were made with g = 1 (dry friction pi/2 times the nominal coefficient)."""
     indicator_width: Scalar = _param(5e-4)
     """delta of the smooth inside test, m; 0 is the paper's hard indicator."""
+    stiction_velocity: Scalar = _param(1e-5)
+    """v_s of the implicit step's friction law, m/s (and rad/s for spin): below it friction is
+    viscous, above it Coulomb's (see `dano.contact.friction`); a body held by friction creeps at
+    about v_s. The explicit step uses `coulomb_smoothing` and `coulomb_regularizer` instead."""
 
 
 class Wrench(eqx.Module):

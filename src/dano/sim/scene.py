@@ -183,6 +183,10 @@ class Scene:
         force_mode: "points" applies each sampled point's own force at the point; "centroid" applies
             the total at the overlap centroid chi, as in the paper.
         robot: an optional robot (see `Robot`, `panda`).
+        integrator: "explicit" (default for now) applies the wrench at the current state (the
+            paper's scheme; needs ~0.5 ms steps; reproduces the reference data); "implicit" solves
+            the contact implicitly in the DANOs' velocities (stable at one 2 ms step per frame,
+            friction that sticks; `dano.sim.implicit`; not yet the default: see README).
     """
 
     timestep: Number = 0.002
@@ -197,6 +201,7 @@ class Scene:
     pair_contact: tuple[tuple[tuple[str, str], ContactParams], ...] = ()
     force_mode: Literal["points", "centroid"] = "points"
     robot: Robot | None = None
+    integrator: Literal["implicit", "explicit"] = "explicit"
 
     @property
     def n_steps(self) -> int:
@@ -267,6 +272,7 @@ class World(eqx.Module):
     substeps: int = eqx.field(static=True)
     dt: float = eqx.field(static=True)
     force_mode: str = eqx.field(static=True)
+    integrator: str = eqx.field(static=True, default="explicit")
 
 
 class Params(eqx.Module):
@@ -306,31 +312,44 @@ def _pair_name(world: World, pair: tuple[int, str, int]) -> tuple[str, str]:
     return world.names[i], other[kind]()
 
 
-def _add_dano(spec: mujoco.MjSpec, body: DanoBody) -> None:
-    d = body.dano
-    b = spec.worldbody.add_body(name=body.name, pos=list(body.pos), quat=list(body.quat))
-    b.add_freejoint(name=f"{body.name}_free")
-    b.mass = float(d.mass)
-    b.ipos = [0.0, 0.0, 0.0]
-    b.iquat = [1.0, 0.0, 0.0, 0.0]
-    b.inertia = [1.0, 1.0, 1.0]  # replaced after compiling by `_set_inertia`
-    b.explicitinertial = True
-
-
-def _set_inertia(model: mujoco.MjModel, body: int, inertia: np.ndarray) -> None:
-    """Writes a full inertia tensor (body frame) as MuJoCo's principal moments and frame.
-
-    Done on the compiled model rather than through `fullinertia` because the compiler rejects
-    tensors that break the triangle inequality, and the reference DANOs (which simulate with the
-    second moment, see `dano.reference`) need exactly such a tensor to be reproduced.
-    """
+def principal_frame(inertia) -> tuple[np.ndarray, np.ndarray]:
+    """Principal moments (3,) and the quaternion (w, x, y, z) of the principal axes (a proper
+    rotation) of an inertia tensor (3, 3) given in the body frame."""
     moments, axes = np.linalg.eigh(np.asarray(inertia, dtype=np.float64))
     if np.linalg.det(axes) < 0:
         axes[:, 0] = -axes[:, 0]
     quat = np.zeros(4)
     mujoco.mju_mat2Quat(quat, axes.ravel())
+    return moments, quat
+
+
+def _add_dano(spec: mujoco.MjSpec, body: DanoBody) -> None:
+    """A free body whose inertial frame is the DANO's principal frame.
+
+    The principal frame must be given to the compiler: MuJoCo decides from `ipos`/`iquat` whether
+    the inertial frame is the body frame (`body_sameframe`, `body_simple`) and then ignores
+    `body_iquat`, so writing the frame into the compiled model afterwards turns the tensor about
+    the wrong axes. The moments are written after compiling (`_set_moments`): the compiler rejects
+    moments that break the triangle inequality, which the reference DANOs need (`dano.reference`).
+    """
+    d = body.dano
+    _, quat = principal_frame(d.inertia)
+    b = spec.worldbody.add_body(name=body.name, pos=list(body.pos), quat=list(body.quat))
+    b.add_freejoint(name=f"{body.name}_free")
+    b.mass = float(d.mass)
+    b.ipos = [0.0, 0.0, 0.0]
+    b.iquat = quat.tolist()
+    b.inertia = [1.0, 1.0, 1.0]  # replaced after compiling by `_set_moments`
+    b.explicitinertial = True
+
+
+def _set_moments(model: mujoco.MjModel, body: int, inertia: np.ndarray) -> None:
+    """Writes the principal moments of a full inertia tensor (body frame) into the compiled model,
+    whose inertial frame `_add_dano` already set to the tensor's principal axes."""
+    moments, quat = principal_frame(inertia)
+    if not np.allclose(np.abs(quat @ model.body_iquat[body]), 1.0, atol=1e-9):
+        raise AssertionError("the compiled inertial frame is not the principal frame")  # an invariant
     model.body_inertia[body] = moments
-    model.body_iquat[body] = quat
 
 
 _GEOM = {
@@ -410,7 +429,7 @@ def compile_scene(scene: Scene):
         _add_primitive(spec, p)
     model = spec.compile()
     for body in scene.bodies:
-        _set_inertia(model, model.body(body.name).id, np.asarray(body.dano.inertia))
+        _set_moments(model, model.body(body.name).id, np.asarray(body.dano.inertia))
 
     joints = {model.joint(j).name: j for j in range(model.njnt)}
 
@@ -461,6 +480,7 @@ def compile_scene(scene: Scene):
         substeps=scene.substeps,
         dt=scene.timestep / scene.substeps,
         force_mode=scene.force_mode,
+        integrator=scene.integrator,
     )
     overrides = dict(scene.pair_contact)
     params = Params(
@@ -584,7 +604,7 @@ def _set_free(model, qpos, qvel, a, v, pos, quat, vel, angvel) -> None:
     qvel[v + 3 : v + 6] = R.reshape(3, 3).T @ np.asarray(angvel, dtype=float)  # MuJoCo: body frame
 
 
-_SIM_KEYS = {"timestep", "duration", "gravity", "substeps", "force_mode"}
+_SIM_KEYS = {"timestep", "duration", "gravity", "substeps", "force_mode", "integrator"}
 _BODY_KEYS = {"name", "dano", "pos", "quat", "vel", "angvel", "mass"}
 _PRIM_KEYS = {"name", "type", "size", "pos", "quat", "mode", "mass", "vel", "angvel"}
 _CONTACT_KEYS = {f.name for f in dataclasses.fields(ContactParams)}
@@ -666,4 +686,11 @@ def load_scene(path) -> Scene:
         contact=contact,
         pair_contact=tuple(pair_contact),
         force_mode=sim.get("force_mode", "points"),
+        integrator=_integrator(sim.get("integrator", "explicit"), path),
     )
+
+
+def _integrator(value, path) -> str:
+    if value not in ("explicit", "implicit"):
+        raise SceneError(f'{path}: [sim] integrator must be "explicit" or "implicit", got {value!r}')
+    return value

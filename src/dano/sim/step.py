@@ -1,9 +1,17 @@
-"""The simulation step: DANO contact wrenches -> `xfrc_applied` -> `mjx.step`, and rollouts.
+"""The simulation step: DANO contact -> MuJoCo MJX, as a column of stages, and rollouts.
 
-One frame is `world.substeps` MuJoCo steps; before each, every DANO pair's wrench is computed at
-the current configuration and velocity and written to `xfrc_applied` (force and torque about each
-body's centre of mass, world frame). A rollout is a `lax.scan` over frames with the frame step
-under `jax.checkpoint`, so reverse-mode gradients of long rollouts keep only one state per frame.
+One frame is `world.substeps` steps of `world.dt`. Two integrators (`Scene.integrator`):
+
+- "implicit": `implicit_step` (`dano.sim.implicit`): the contact is solved implicitly in
+  the DANOs' velocities (backward Euler, linearised in the stiff normal terms, exact in friction),
+  and the DANOs' rigid motion is integrated by dano; the reactions on MuJoCo bodies enter through
+  `xfrc_applied` and `mjx.step` moves them. Stable at the 2 ms default with one step per frame.
+- "explicit" (the default for now): the wrench at the current state written to `xfrc_applied` before each `mjx.step`
+  (the paper's "computed explicitly at the current configuration"), with the linearly implicit
+  damper; it needs ~0.5 ms steps, and reproduces the reference's stored trajectories.
+
+A rollout is a `lax.scan` over frames with the frame step under `jax.checkpoint`, so reverse-mode
+gradients of long rollouts keep only one state per frame.
 """
 
 import equinox as eqx
@@ -12,21 +20,11 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 from mujoco import mjx
 
-from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere, expected_overlap
-from dano.contact.overlap import outward_normal
+from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere
+from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
-from dano.math import normalize, quat_to_mat, safe_norm
-from dano.sim.scene import DanoState, LinkGeom, Params, World, pairs
-
-
-class Frame(eqx.Module):
-    """Pose and velocity of a rigid body, world frame: centre of mass x (3,), rotation R (3, 3),
-    velocity v (3,), angular velocity w (3,)."""
-
-    x: Float[Array, " 3"]
-    R: Float[Array, "3 3"]
-    v: Float[Array, " 3"]
-    w: Float[Array, " 3"]
+from dano.math import quat_to_mat
+from dano.sim.scene import LinkGeom, Params, World, pairs
 
 
 def free_frame(qpos: Array, qvel: Array, a: int, v: int) -> Frame:
@@ -68,90 +66,6 @@ def primitive_shape(world: World, k: int, f: Frame):
     return Box(f.x, f.R, jnp.asarray(size, dtype=float))
 
 
-class Body(eqx.Module):
-    """A DANO's contact data at the current scales: body-frame points (3, n), weights (n,) kg,
-    mass kg, inertia about the centre of mass (3, 3) body frame, and its `DanoState`."""
-
-    points: Float[Array, "3 n"]
-    weights: Float[Array, " n"]
-    mass: Float[Array, ""]
-    inertia: Float[Array, "3 3"]
-    state: DanoState
-
-
-def inverse_effective_mass(body: Body, a: Frame, at: Array, normal: Array) -> Array:
-    """1 / effective mass of a body at world point `at` along `normal`: 1/m + (r x n)^T I^-1 (r x n)."""
-    rn = jnp.cross(at - a.x, normal)
-    return 1.0 / body.mass + rn @ (a.R @ jnp.linalg.solve(body.inertia, a.R.T @ rn))
-
-
-def implicit_damper(p: ContactParams, psi, inv_m_eff, dt: float) -> ContactParams:
-    """Contact parameters with the damper made linearly implicit: c_d / (1 + dt c_d psi / m_eff).
-
-    An explicit damper c_d psi is unstable once dt c_d psi / m_eff > 2 (deep or wide contacts);
-    the backward-Euler factor makes the damping force at most the one that stops the normal
-    relative motion in one step, smoothly, and changes nothing when dt c_d psi << m_eff.
-    m_eff is the effective mass of the contact along the normal at chi (both bodies).
-    """
-    factor = 1.0 + dt * p.impact_damper * psi * inv_m_eff
-    return eqx.tree_at(lambda q: q.impact_damper, p, p.impact_damper / factor)
-
-
-def pair_wrench(p: ContactParams, shape, body: Body, a: Frame, b: Frame, mode: str, other_inv_mass: float, dt: float):
-    """Wrench on DANO `a` from primitive `shape` carried by frame `b` (eqs. 7-8, 11-16).
-
-    Returns:
-        force (3,) and torque about a's centre of mass (3,), world frame.
-    """
-    P = a.R @ body.points + a.x[:, None]
-    o = expected_overlap(shape, P, body.weights, p.indicator_width)
-    p = implicit_damper(p, o.psi, inverse_effective_mass(body, a, o.chi, o.normal) + other_inv_mass, dt)
-    if mode == "centroid":
-        at, psi, normal = o.chi[:, None], o.psi[None], o.normal[:, None]
-    elif isinstance(shape, HalfSpace):
-        at, psi, normal = P, o.inside, o.normal[:, None]
-    else:
-        at, psi, normal = P, o.inside, jax.vmap(outward_normal, (None, 1), 1)(shape, P)
-    return _apply(p, at, psi, normal, a, b)
-
-
-def _apply(p: ContactParams, at: Array, psi: Array, normal: Array, a: Frame, b: Frame):
-    """`contact_wrench` on DANO `a` from body `b`: (force, torque about a's centre of mass)."""
-    w = contact_wrench(p, psi, at, normal, a.x, a.v, a.w, b.x, b.v, b.w)
-    return w.force, w.torque
-
-
-def occupancy(state: DanoState, frame: Frame, world_points: Float[Array, "3 k"]) -> Float[Array, " k"]:
-    """How much each world point is inside a DANO: its field there over its peak, in [0, 1]."""
-    local = frame.R.T @ (world_points - frame.x[:, None]) + state.com[:, None]
-    return jnp.clip(state.field(local.T) / state.peak, 0.0, 1.0)
-
-
-def dano_pair_wrench(p: ContactParams, A: Body, B: Body, a: Frame, b: Frame, mode: str, dt: float):
-    """Wrench on DANO A from DANO B (eqs. 9-10 and the normal after them).
-
-    Each body's surface points count with their weight times the other body's occupancy there
-    (its density over its peak): in kg, like the primitive case, whose occupancy is the indicator.
-    The normal (from B towards A) is the overlap-weighted sum of B's outward normals at B's points
-    minus A's at A's points. Returns the force on A and its torque about A's centre of mass.
-    """
-    PA = a.R @ A.points + a.x[:, None]
-    PB = b.R @ B.points + b.x[:, None]
-    psi_a = A.weights * occupancy(B.state, b, PA)
-    psi_b = B.weights * occupancy(A.state, a, PB)
-    at = jnp.concatenate([PA, PB], axis=1)
-    psi = jnp.concatenate([psi_a, psi_b])
-    n_bar = (b.R @ B.state.normals) @ psi_b - (a.R @ A.state.normals) @ psi_a
-    normal = normalize(n_bar)
-    total = jnp.sum(psi)
-    chi = at @ psi / jnp.where(total > 0, total, 1.0)
-    inv_m = inverse_effective_mass(A, a, chi, normal) + inverse_effective_mass(B, b, chi, normal)
-    p = implicit_damper(p, total, inv_m, dt)
-    if mode == "centroid":
-        return _apply(p, chi[:, None], total[None], normal[:, None], a, b)
-    return _apply(p, at, psi, normal[:, None], a, b)
-
-
 def link_frame(link: LinkGeom, kin: mjx.Data) -> Frame:
     """Pose of a robot collision geom (current kinematics) and the velocity of its body.
 
@@ -176,12 +90,135 @@ def link_shape(link: LinkGeom, f: Frame):
     return Box(f.x, f.R, jnp.asarray(link.size, dtype=float))
 
 
-def _broad_phase(fn, a: Frame, body: Body, centre: Array, radius: float):
-    """Runs `fn()` only when the DANO's bounding sphere meets one of `radius` around `centre`."""
-    reach = jnp.max(safe_norm(body.points, axis=0)) + radius
-    near = safe_norm(a.x - centre) < reach
-    zero = (jnp.zeros(3), jnp.zeros(3))
-    return jax.lax.cond(near, fn, lambda: zero)
+def dano_bodies(world: World, params: Params) -> tuple[Body, ...]:
+    """Each DANO's contact data at the current mass and inertia scales."""
+    out = []
+    for i, s in enumerate(world.danos):
+        mass = s.mass * params.mass_scale[i]
+        inertia = s.inertia * params.mass_scale[i] * params.inertia_scale[i]
+        out.append(Body(s.points, s.normals, s.shares * mass, mass, inertia, s.field, s.com, s.peak))
+    return tuple(out)
+
+
+def dano_frames(world: World, d: mjx.Data) -> tuple[Frame, ...]:
+    return tuple(free_frame(d.qpos, d.qvel, a, v) for a, v in zip(world.dano_qpos, world.dano_qvel, strict=True))
+
+
+class Partner(eqx.Module):
+    """The other body of a pair, as the contact sees it.
+
+    Attributes:
+        frame: its pose and velocity (for a DANO partner, from the DANO frames instead).
+        shape: its geometry (None for a DANO).
+        body: MuJoCo body id that takes the reaction, or -1 (static, mocap, or a DANO: see `dano`).
+        dano: the partner's DANO index, or -1.
+        inv_mass: 1 / its mass (0 when it does not move under forces).
+        radius: broad-phase radius around `frame.x`, or 0 for no broad phase.
+    """
+
+    frame: Frame
+    shape: object
+    body: int = eqx.field(static=True)
+    dano: int = eqx.field(static=True)
+    inv_mass: float = eqx.field(static=True)
+    radius: float = eqx.field(static=True)
+
+
+def _ground(world: World, k: int, d, kin, mocap_vel) -> Partner:
+    n = world.ground_normal
+    b = _static_frame(tuple(world.ground_height * v for v in n), (1.0, 0.0, 0.0, 0.0))
+    return Partner(b, HalfSpace(jnp.asarray(n), b.x), -1, -1, 0.0, 0.0)
+
+
+def _primitive(world: World, k: int, d, kin, mocap_vel) -> Partner:
+    b = primitive_frame(world, k, d, mocap_vel)
+    moving = world.prim_mode[k] in ("free", "actuated")
+    body = world.prim_body[k] if moving else -1
+    return Partner(b, primitive_shape(world, k, b), body, -1, 1.0 / world.prim_mass[k], 0.0)
+
+
+def _link(world: World, k: int, d, kin, mocap_vel) -> Partner:
+    link = world.links[k]
+    b = link_frame(link, kin)
+    return Partner(b, link_shape(link, b), link.body, -1, 0.0, link.radius)
+
+
+def _dano(world: World, k: int, d, kin, mocap_vel) -> Partner:
+    return Partner(free_frame(d.qpos, d.qvel, world.dano_qpos[k], world.dano_qvel[k]), None, -1, k, 0.0, 0.0)
+
+
+PARTNERS = {"ground": _ground, "primitive": _primitive, "link": _link, "dano": _dano}
+"""How each pair kind's partner is read from the MuJoCo state: one small function per kind."""
+
+
+def partners(world: World, d: mjx.Data, mocap_vel=None, kin: mjx.Data | None = None) -> tuple[Partner, ...]:
+    """Every pair's partner; `kin` is `link_motion(m, d)` when the world has a robot."""
+    return tuple(PARTNERS[kind](world, k, d, kin, mocap_vel) for _, kind, k in pairs(world))
+
+
+def pair_points(world: World, p: ContactParams, partner: Partner, bodies, i: int, a: Frame, b: Frame) -> PointSet:
+    """The contact points of DANO i (frame a) with its partner (frame b), broad phase included."""
+    if partner.dano >= 0:
+        return dano_points(bodies[i], bodies[partner.dano], a, b, world.force_mode)
+    fn = lambda: primitive_points(partner.shape, bodies[i], a, p.indicator_width, world.force_mode)  # noqa: E731
+    if not partner.radius:
+        return fn()
+    zero = jax.eval_shape(fn)
+    return jax.lax.cond(near(bodies[i], a, b.x, partner.radius), fn, lambda: _zeros(zero))
+
+
+def _zeros(shapes) -> PointSet:
+    return jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+
+
+def inverse_effective_mass(body: Body, a: Frame, at: Array, normal: Array) -> Array:
+    """1 / effective mass of a body at world point `at` along `normal`: 1/m + (r x n)^T I^-1 (r x n)."""
+    rn = jnp.cross(at - a.x, normal)
+    return 1.0 / body.mass + rn @ (a.R @ jnp.linalg.solve(body.inertia, a.R.T @ rn))
+
+
+def implicit_damper(p: ContactParams, psi, inv_m_eff, dt: float) -> ContactParams:
+    """Contact parameters with the damper made linearly implicit: c_d / (1 + dt c_d psi / m_eff).
+
+    An explicit damper c_d psi is unstable once dt c_d psi / m_eff > 2 (deep or wide contacts);
+    the backward-Euler factor makes the damping force at most the one that stops the normal
+    relative motion in one step, smoothly, and changes nothing when dt c_d psi << m_eff.
+    m_eff is the effective mass of the contact along the normal at chi (both bodies).
+    """
+    factor = 1.0 + dt * p.impact_damper * psi * inv_m_eff
+    return eqx.tree_at(lambda q: q.impact_damper, p, p.impact_damper / factor)
+
+
+def explicit_pair_wrench(
+    world: World, p: ContactParams, partner: Partner, bodies, frames, i: int
+) -> Float[Array, " 6"]:
+    """The explicit step's wrench on DANO i from its partner (eqs. 11-16): force and torque about
+    the DANO's centre of mass, world, with the damper made linearly implicit."""
+    a = frames[i]
+    b = frames[partner.dano] if partner.dano >= 0 else partner.frame
+    pts = pair_points(world, p, partner, bodies, i, a, b)
+    psi = jnp.sum(pts.psi)
+    chi = pts.at @ pts.psi / jnp.where(psi > 0, psi, 1.0)
+    normal = pts.normal[:, 0] if pts.normal.shape[1] == 1 else _mean_normal(pts)
+    inv_m = inverse_effective_mass(bodies[i], a, chi, normal)
+    if partner.dano >= 0:
+        inv_m = inv_m + inverse_effective_mass(bodies[partner.dano], b, chi, normal)
+    else:
+        inv_m = inv_m + partner.inv_mass
+    p = implicit_damper(p, psi, inv_m, world.dt)
+    w = contact_wrench(p, pts.psi, pts.at, pts.normal, a.x, a.v, a.w, b.x, b.v, b.w)
+    return jnp.concatenate([w.force, w.torque])
+
+
+def _mean_normal(pts: PointSet) -> Array:
+    from dano.math import normalize
+
+    return normalize(pts.normal @ pts.psi)
+
+
+def scatter(xfrc: Array, body: int, wrench: Array) -> Array:
+    """Adds a wrench (force, torque about the body's centre of mass; world) to `xfrc_applied`."""
+    return xfrc.at[body].add(wrench) if body >= 0 else xfrc
 
 
 def contact_xfrc(
@@ -191,7 +228,7 @@ def contact_xfrc(
     mocap_vel: Float[Array, "k 3"] | None = None,
     m: mjx.Model | None = None,
 ) -> Float[Array, "nbody 6"]:
-    """Sum of all DANO contact wrenches, as MuJoCo's `xfrc_applied` (nbody, 6).
+    """The explicit step's DANO contact wrenches, as MuJoCo's `xfrc_applied` (nbody, 6).
 
     Args:
         mocap_vel: velocities of the mocap bodies (driven primitives), world, m/s; zero if None.
@@ -199,53 +236,15 @@ def contact_xfrc(
     """
     xfrc = jnp.zeros_like(d.xfrc_applied)
     kin = link_motion(m, d) if world.links else None
-    frames = [free_frame(d.qpos, d.qvel, a, v) for a, v in zip(world.dano_qpos, world.dano_qvel, strict=True)]
-    bodies = [
-        Body(
-            s.points,
-            s.shares * s.mass * params.mass_scale[i],
-            s.mass * params.mass_scale[i],
-            s.inertia * params.mass_scale[i] * params.inertia_scale[i],
-            s,
-        )
-        for i, s in enumerate(world.danos)
-    ]
-    for p, (i, kind, k) in zip(params.contact, pairs(world), strict=True):
-        a = frames[i]
-        if kind == "ground":
-            n = jnp.asarray(world.ground_normal)
-            b = _static_frame(tuple(world.ground_height * v for v in world.ground_normal), (1.0, 0.0, 0.0, 0.0))
-            shape, other, inv_mass = HalfSpace(n, b.x), None, 0.0
-        elif kind == "primitive":
-            b = primitive_frame(world, k, d, mocap_vel)
-            shape = primitive_shape(world, k, b)
-            other = world.prim_body[k] if world.prim_mode[k] in ("free", "actuated") else None
-            inv_mass = 1.0 / world.prim_mass[k]
-        elif kind == "link":
-            link = world.links[k]
-            b = link_frame(link, kin)
-            shape = link_shape(link, b)
-
-            def touch(shape=shape, a=a, b=b, p=p, body=bodies[i]):
-                return pair_wrench(p, shape, body, a, b, world.force_mode, 0.0, world.dt)
-
-            force, torque = _broad_phase(touch, a, bodies[i], b.x, link.radius)
-            xfrc = xfrc.at[world.dano_body[i]].add(jnp.concatenate([force, torque]))
-            reaction = -(torque + jnp.cross(a.x - kin.xipos[link.body], force))
-            xfrc = xfrc.at[link.body].add(jnp.concatenate([-force, reaction]))
-            continue
-        else:
-            b = frames[k]
-            force, torque = dano_pair_wrench(p, bodies[i], bodies[k], a, b, world.force_mode, world.dt)
-            xfrc = xfrc.at[world.dano_body[i]].add(jnp.concatenate([force, torque]))
-            reaction = -(torque + jnp.cross(a.x - b.x, force))
-            xfrc = xfrc.at[world.dano_body[k]].add(jnp.concatenate([-force, reaction]))
-            continue
-        force, torque = pair_wrench(p, shape, bodies[i], a, b, world.force_mode, inv_mass, world.dt)
-        xfrc = xfrc.at[world.dano_body[i]].add(jnp.concatenate([force, torque]))
-        if other is not None:
-            reaction = -(torque + jnp.cross(a.x - b.x, force))
-            xfrc = xfrc.at[other].add(jnp.concatenate([-force, reaction]))
+    frames, bodies = dano_frames(world, d), dano_bodies(world, params)
+    for p, (i, kind, _), partner in zip(params.contact, pairs(world), partners(world, d, mocap_vel, kin), strict=True):
+        w = explicit_pair_wrench(world, p, partner, bodies, frames, i)
+        xfrc = scatter(xfrc, world.dano_body[i], w)
+        if partner.dano >= 0:
+            xfrc = scatter(xfrc, world.dano_body[partner.dano], reaction(w, frames[i].x, frames[partner.dano].x))
+        elif partner.body >= 0:
+            centre = kin.xipos[partner.body] if kind == "link" else partner.frame.x
+            xfrc = scatter(xfrc, partner.body, reaction(w, frames[i].x, centre))
     return xfrc
 
 
@@ -284,7 +283,7 @@ def step(
     mocap_target: Float[Array, "k 3"] | None = None,
     external: Float[Array, "nbody 6"] | None = None,
 ) -> mjx.Data:
-    """One frame: `world.substeps` MuJoCo steps, each with fresh DANO contact wrenches.
+    """One frame: `world.substeps` steps, each with fresh DANO contacts (module docstring).
 
     Args:
         m: the model, already `scaled_model(world, params, m)`.
@@ -299,6 +298,10 @@ def step(
     def sub(d, i):
         if mocap_target is not None:
             d = d.replace(mocap_pos=start + (i + 1) / world.substeps * (mocap_target - start))
+        if world.integrator == "implicit":
+            from dano.sim.implicit import implicit_step
+
+            return implicit_step(world, params, m, d, vel, external), None
         xfrc = contact_xfrc(world, params, d, vel, m)
         d = d.replace(xfrc_applied=xfrc if external is None else xfrc + external)
         return mjx_step(m, d), None
