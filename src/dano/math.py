@@ -35,6 +35,15 @@ def smootherstep(t: Float[ArrayLike, "..."]) -> Float[Array, "..."]:
     return u * u * u * (u * (6.0 * u - 15.0) + 10.0)
 
 
+def cross_matrix(r: Float[ArrayLike, "... 3"]) -> Float[Array, "... 3 3"]:
+    """[r]x, the matrix with [r]x a = r x a, for vectors of any batch shape."""
+    r = jnp.asarray(r)
+    z = jnp.zeros_like(r[..., 0])
+    x, y, w = r[..., 0], r[..., 1], r[..., 2]
+    rows = [jnp.stack([z, -w, y], -1), jnp.stack([w, z, -x], -1), jnp.stack([-y, x, z], -1)]
+    return jnp.stack(rows, -2)
+
+
 def quat_to_mat(q: Float[ArrayLike, "... 4"]) -> Float[Array, "... 3 3"]:
     """Rotation matrix of a quaternion (w, x, y, z); q need not be unit (it is normalised)."""
     q = normalize(q)

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dano.contact.wrench import ContactParams
+from dano.math import cross_matrix
 
 SPIN_LENGTH = 0.01
 """m: spin sticks below v_s / SPIN_LENGTH rad/s (a point 1 cm from the axis slipping at v_s)."""
@@ -51,12 +52,6 @@ def _law(coef, drag, a: Array, vs) -> tuple[Array, Array, Array]:
     s = jnp.sqrt(vs * vs + sq)
     value = coef * sq / (s + vs) + 0.5 * drag * sq
     return value, coef / s + drag, coef / (s * s * s)
-
-
-def _cross_matrix(r: Float[Array, "3 k"]) -> Float[Array, "k 3 3"]:
-    z = jnp.zeros_like(r[0])
-    rows = [jnp.stack([z, -r[2], r[1]], -1), jnp.stack([r[2], z, -r[0]], -1), jnp.stack([-r[1], r[0], z], -1)]
-    return jnp.stack(rows, -2)
 
 
 def patch_terms(p: ContactParams, patch: Patch, V_a: Float[Array, " 6"], V_b: Float[Array, " 6"]):
@@ -91,7 +86,7 @@ def patch_terms(p: ContactParams, patch: Patch, V_a: Float[Array, " 6"], V_b: Fl
 
     def blocks(r_x, r_y):
         """sum_i J_x^T H_u J_y with J = [I, -[r]x] (velocity of a point at lever r)."""
-        Rx, Ry = _cross_matrix(r_x), _cross_matrix(r_y)
+        Rx, Ry = cross_matrix(r_x.T), cross_matrix(r_y.T)
         vv = jnp.sum(H_u, axis=0)
         vw = -jnp.sum(H_u @ Ry, axis=0)
         wv = jnp.sum(Rx @ H_u, axis=0)

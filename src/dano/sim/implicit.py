@@ -39,7 +39,7 @@ from mujoco import mjx
 from dano.contact.friction import Patch, patch_terms
 from dano.contact.pairs import Frame, relative_velocity, wrench_about
 from dano.contact.pairs import reaction as reaction_of
-from dano.math import normalize, quat_exp, quat_mul
+from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
 from dano.sim.scene import Params, World, pairs
 from dano.sim.step import dano_bodies, dano_frames, link_motion, mjx_step, pair_points, partners, scatter
 
@@ -47,14 +47,9 @@ NEWTON_ITERATIONS = 40
 """At most this many Newton steps for the friction stage (it stops when a step moves < 1e-13)."""
 
 
-def _hat(w: Float[Array, " 3"]) -> Float[Array, "3 3"]:
-    z = jnp.zeros((), w.dtype)
-    return jnp.stack([jnp.stack([z, -w[2], w[1]]), jnp.stack([w[2], z, -w[0]]), jnp.stack([-w[1], w[0], z])])
-
-
 def _moved(f: Frame, xi: Float[Array, " 6"], V: Float[Array, " 6"]) -> Frame:
     """The frame displaced by the twist xi (dx, d theta; first order) with velocity V."""
-    return Frame(f.x + xi[:3], f.R + _hat(xi[3:]) @ f.R, V[:3], V[3:])
+    return Frame(f.x + xi[:3], f.R + cross_matrix(xi[3:]) @ f.R, V[:3], V[3:])
 
 
 def _block_diag(blocks: list[Array]) -> Array:
@@ -122,8 +117,6 @@ def _rotate(q: Float[Array, " 4"], R: Array, inertia: Array, L: Array, h: float)
     def omega(R):
         return R @ jnp.linalg.solve(inertia, R.T @ L)
 
-    from dano.math import quat_to_mat
-
     mid = quat_to_mat(quat_mul(quat_exp(0.5 * h * omega(R)), q))
     q1 = normalize(quat_mul(quat_exp(h * omega(mid)), q))
     R1 = quat_to_mat(q1)
@@ -164,7 +157,7 @@ def implicit_step(
         (6n,), each pair's wrench on its DANO (p, 6) and each point's normal force (p x (k,))."""
         fr = frames_at(z)
         W = jnp.zeros((n, 6))
-        per_pair, normal = [], []
+        per_pair, normal, geometry = [], [], []
         for p, (i, _, _), mate in zip(params.contact, pair_list, mates, strict=True):
             a = fr[i]
             b = fr[mate.dano] if mate.dano >= 0 else mate.frame
@@ -177,14 +170,15 @@ def implicit_step(
                 W = W.at[mate.dano].add(reaction_of(w, a.x, b.x))
             per_pair.append(w)
             normal.append(N)
+            geometry.append(pts)
         out = (W.reshape(-1), tuple(per_pair), tuple(normal))
-        return out, out
+        return out, (out, tuple(geometry))
 
     # Linearised at the predicted end of the step (displacement h V~, velocity V~): a contact that
     # the step would reach is felt in that step, so a fast body is stopped at the surface instead
     # of a step's travel inside it.
     z0 = jnp.concatenate([h * V_free, V_free])
-    jac, (W0, w0, N0) = jax.jacfwd(normal_forces, has_aux=True)(z0)
+    jac, ((W0, w0, N0), geometry) = jax.jacfwd(normal_forces, has_aux=True)(z0)
     J_W, J_w, J_N = jac
     K, D = J_W[:, : 6 * n], J_W[:, 6 * n :]
     A = M - h * D - h * h * K
@@ -197,10 +191,9 @@ def implicit_step(
     # Stage 2: friction at the same (predicted) geometry, with the normal forces of stage 1.
     start = frames_at(z0)
     patches = []
-    for p, (i, _, _), mate, N in zip(params.contact, pair_list, mates, N_end, strict=True):
+    for (i, _, _), mate, N, pts in zip(pair_list, mates, N_end, geometry, strict=True):
         a = start[i]
         b = start[mate.dano] if mate.dano >= 0 else mate.frame
-        pts = pair_points(world, p, mate, bodies, i, a, b)
         zero = jnp.zeros_like(pts.at)
         if mate.dano >= 0:
             patches.append(Patch(pts.at - a.x[:, None], pts.at - b.x[:, None], zero, jnp.zeros(3), pts.normal, N))

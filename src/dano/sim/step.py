@@ -23,7 +23,7 @@ from mujoco import mjx
 from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
-from dano.math import quat_to_mat
+from dano.math import normalize, quat_to_mat
 from dano.sim.scene import LinkGeom, Params, World, pairs
 
 
@@ -211,8 +211,6 @@ def explicit_pair_wrench(
 
 
 def _mean_normal(pts: PointSet) -> Array:
-    from dano.math import normalize
-
     return normalize(pts.normal @ pts.psi)
 
 
