@@ -113,6 +113,47 @@ def test_friction_holds_a_box_on_a_20_degree_slope(flat_box):
     assert abs(creep) <= 1e-4  # m/s: 0.1 mm/s (the issue's bound; measured 0.01 mm/s)
 
 
+@pytest.mark.parametrize("sunk", [0.0, 1e-3])
+def test_a_box_placed_on_or_into_the_floor_is_not_launched_and_slides_v2_over_2_mu_g(flat_box, sunk):
+    lift = -float(np.min(np.asarray(flat_box.body_points)[:, 2]))
+    mu, v0 = 0.5, 1.0
+    body = DanoBody("b", flat_box, pos=(0, 0, lift - sunk), vel=(v0, 0, 0))
+    scene = Scene(bodies=(body,), integrator="implicit", substeps=1, duration=0.6,
+                  contact=ContactParams(sliding_friction=mu))  # fmt: skip
+    traj = Simulation.from_scene(scene).run()
+    q, v = np.asarray(traj.qpos), np.asarray(traj.qvel)
+    assert max(_lowest(flat_box, row) for row in q) <= 1e-3  # explicit: launched to 46 mm clear
+    assert np.linalg.norm(v[-1, :3]) < 1e-3  # stopped
+    # v0^2 / (2 mu g); backward Euler's x += h v' alone is h v0 / 2 = 1 % short.
+    np.testing.assert_allclose(q[-1, 0], v0**2 / (2 * mu * G), rtol=0.02)
+
+
+def test_a_box_on_a_slope_with_mu_below_tan_theta_accelerates_at_g_sin_minus_mu_cos(flat_box):
+    th, mu = np.radians(20.0), 0.3
+    normal, quat = (np.sin(th), 0.0, np.cos(th)), (np.cos(th / 2), 0.0, np.sin(th / 2), 0.0)
+    lift = -float(np.min(np.asarray(flat_box.body_points)[:, 2]))
+    body = DanoBody("b", flat_box, pos=tuple(lift * np.asarray(normal)), quat=quat)
+    scene = Scene(ground_normal=normal, bodies=(body,), integrator="implicit", substeps=1, duration=1.5,
+                  contact=ContactParams(sliding_friction=mu))  # fmt: skip
+    v = np.asarray(Simulation.from_scene(scene).run().qvel[:, :3]) @ np.array([np.cos(th), 0.0, -np.sin(th)])
+    accel = np.polyfit(np.arange(250, 750) * 0.002, v[250:750], 1)[0]
+    np.testing.assert_allclose(accel, G * (np.sin(th) - mu * np.cos(th)), rtol=0.02)
+
+
+@pytest.mark.slow
+def test_the_top_of_two_stacked_boxes_stays_put():
+    """DANO on DANO on the floor for 10 s (eqs. 9-10, solved jointly): the top box holds."""
+    flat_box = dano.build_dano(BoxField([0.1, 0.1, 0.05]), n_points=1000, mass=1.0, log2_samples=12,
+                               replicates=4, grid_resolution=32)  # fmt: skip
+    lift = -float(np.min(np.asarray(flat_box.body_points)[:, 2]))
+    bodies = (DanoBody("bottom", flat_box, pos=(0, 0, lift)), DanoBody("top", flat_box, pos=(0.01, 0, 3 * lift)))
+    traj = Simulation.from_scene(Scene(bodies=bodies, integrator="implicit", substeps=1, duration=10.0)).run()
+    top = np.asarray(traj.qpos)[:, 7:10]
+    drift = np.linalg.norm(top[-1, :2] - top[1000, :2]) / 8.0  # m/s over the last 8 s
+    assert drift <= 1e-5  # the issue's bound, 0.01 mm/s (the explicit step: 0.06-0.07 mm/s)
+    assert abs(top[-1, 2] - top[1000, 2]) < 1e-4  # not sinking into the bottom box
+
+
 def test_implicit_step_gradients_match_central_differences(flat_box):
     """d(final x)/d(friction, damper, initial velocity) through 40 implicit steps of a sliding box
     (Newton's friction solve differentiated through its optimality condition)."""
