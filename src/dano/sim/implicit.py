@@ -1,28 +1,25 @@
-"""The implicit contact step: backward Euler in the DANOs' velocities, friction that sticks.
+"""The implicit contact step: backward Euler in the DANOs' velocities, as one convex minimisation.
 
 A flat face resting on the floor is a very stiff spring: hundreds of surface points enter the floor
 within the indicator width, so d(k psi)/dz ~ k m_face / 1 mm ~ 1e7 N/m on a 0.5 kg box, a period
 near 1 ms. Integrated explicitly that spring gains energy at any step the default frame allows,
 and the explicit friction law must be smoothed to be stable, so it creeps. This step instead
-solves, for the velocities V' (6 per DANO: v, w, world) at the end of the step h,
+takes the velocities V' (6 per DANO: v, w, world) at the end of the step h as
 
-    M (V' - V~) = h F_n(q + h V', V') + h F_f(V'),
+    V' = argmin_V  (1/2) |V - V~|_M^2 + U(V) + h R(V) + h D(V),
 
-in two stages (V~ the velocity after gravity and known external wrenches; M the world-frame mass
-matrices):
+V~ the velocities after gravity and known external wrenches, M the world-frame mass matrices, U
+the pairs' spring potential and R their damper's Rayleigh function (`dano.contact.support`: each
+point's depth is linear in V with the geometry frozen at the pose V~ reaches, its force law exact),
+D friction's dissipation potential (`dano.contact.friction`). The optimality condition is backward
+Euler, M (V' - V~) = h F(V'), and every term is convex, so the step is stable for any stiffness,
+finds the contact a fast body would reach within the step, only dissipates, and has a unique
+answer: damped Newton with a backtracking line search, differentiated through the optimality
+condition (`lax.custom_root`), so gradients are those of the exact minimiser.
 
-1. **Normal forces, linearised backward Euler** (as MuJoCo's implicit integrators treat
-   velocity-dependent forces, plus the position term): with K = dF_n/dq and D = dF_n/dV from one
-   forward-mode Jacobian of the contact (12 tangents per DANO),
-           (M - h D - h^2 K) dV = h F_n,        V* = V~ + dV,
-   all at the predicted end of the step (q + h V~, V~), so a contact the step would reach acts in
-   that step.
-   It is stable for any stiffness and damping (A-stable), and only dissipates.
-2. **Friction, exactly implicit**: V' = argmin (1/2)|V - V*|_A^2 + h D(V) with D the convex
-   dissipation potential of `dano.contact.friction`, at the normal forces of stage 1 (linearised
-   to the end of the step). Solved by Newton's method with a backtracking line search; its
-   derivatives come from the optimality condition (implicit function theorem, `lax.custom_root`),
-   so gradients are those of the exact minimiser.
+The damper's overlaps are lagged (taken at the pose V~ reaches), and so are friction's normal
+forces: the first solve has no friction, each next one (`PASSES`) friction at the normal forces
+the previous one delivered, so it scales with the support that answers friction's own torque.
 
 The DANOs' rigid motion is then integrated here, not by MuJoCo: v' gives x; the world angular
 momentum L' = I_w(q) w' is held over the step while the rotation follows it (explicit midpoint on
@@ -31,22 +28,22 @@ bodies (free and actuated primitives, robot links) are the same forces with oppo
 through `xfrc_applied` before `mjx.step` moves them; a DANO-DANO pair is solved jointly (12 x 12).
 """
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 from mujoco import mjx
 
 from dano.contact.friction import Patch, patch_terms
-from dano.contact.pairs import Frame, relative_velocity, wrench_about
+from dano.contact.pairs import Frame, near
 from dano.contact.pairs import reaction as reaction_of
+from dano.contact.support import Support, dano_support, normal_terms, normal_velocity, overlap, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
 from dano.sim.scene import Params, World, pairs
-from dano.sim.step import dano_bodies, dano_frames, link_motion, mjx_step, pair_points, partners, scatter
+from dano.sim.step import dano_bodies, dano_frames, link_motion, mjx_step, partners, scatter
 
-FRICTION_PASSES = 2
-"""Friction solves per step: the first at stage 1's normal forces, the next at the normal forces
-that the support gives once friction has acted (`friction_solve`)."""
+PASSES = 3
+"""Solves per step: the first without friction, each next one with friction at the normal forces
+the previous one delivered (so that they include the support's answer to friction's own torque)."""
 
 NEWTON_ITERATIONS = 40
 """At most this many Newton steps for the friction stage (it stops when a step moves < 1e-13)."""
@@ -104,27 +101,13 @@ def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array,
     return jax.lax.custom_root(lambda x: objective(x)[1], x0, solve, tangent_solve)
 
 
-def _at_least(S: Float[Array, "n n"], M: Float[Array, "n n"]) -> Float[Array, "n n"]:
-    """The symmetric S with its eigenvalues raised to at least half the smallest of M's (so that the
-    friction problem stays strongly convex whatever the geometric stiffness)."""
-    # The correction carries no gradient: eigh's derivative is undefined at repeated eigenvalues
-    # (m, m, m), and in practice the correction is zero (A = M + dissipative and restoring terms).
-    fixed = jax.lax.stop_gradient(S)
-    lam, Q = jnp.linalg.eigh(fixed)
-    floor = 0.5 * jnp.min(jnp.linalg.eigvalsh(jax.lax.stop_gradient(M)))
-    return S + (Q * (jnp.maximum(lam, floor) - lam)[None, :]) @ Q.T
-
-
 def friction_normal(N: Float[Array, " k"]) -> Float[Array, " k"]:
-    """The points' normal forces that friction scales with: the positive parts of stage 1's
-    linearised forces N (k,), scaled so that they add up to the pair's total normal force.
-
-    Each point's force is a linear extrapolation over the step from the predicted state, good in
-    sum (the total is the impulse stage 1 delivers: M dV / h) but not point by point: where a face
-    enters the floor, points in the indicator's ramp extrapolate far above and below zero, and the
-    sum of the positive parts was 10x the delivered force (a box placed 0.5 mm into the floor
-    lost a third of its 1 m/s in the first step). So the positive parts give where the support is,
-    the total how much; a pair whose net normal force pulls has no friction.
+    """The points' normal forces that friction scales with: the positive parts of N (k,), scaled
+    to add up to the pair's total. A point's spring and damper may pull (N < 0) while the pair
+    pushes; clipping alone then counts more support than the pair gives (in the first version of
+    this step, 10x for a box placed 0.5 mm into the floor, which lost a third of its 1 m/s in one
+    step). So the positive parts give where the support is, the total how much; a pair whose net
+    normal force pulls has no friction.
     """
     positive = jnp.maximum(N, 0.0)
     total, raw = jnp.maximum(jnp.sum(N), 0.0), jnp.sum(positive)
@@ -142,6 +125,27 @@ def _rotate(q: Float[Array, " 4"], R: Array, inertia: Array, L: Array, h: float)
     q1 = normalize(quat_mul(quat_exp(h * omega(mid)), q))
     R1 = quat_to_mat(q1)
     return q1, jnp.linalg.solve(inertia, R1.T @ L)
+
+
+def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame) -> Support:
+    """Pair i's support at the predicted frames (a: the DANO's; b: a DANO partner's predicted frame,
+    else the partner's current one), broad phase included."""
+    if mate.dano >= 0:
+        return dano_support(bodies[i], bodies[mate.dano], a, b)
+    fn = lambda: primitive_support(mate.shape, bodies[i], a, p.indicator_width)  # noqa: E731
+    if not mate.radius:
+        return fn()
+    shapes = jax.eval_shape(fn)
+    zeros = lambda: jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)  # noqa: E731
+    return jax.lax.cond(near(bodies[i], a, b.x, mate.radius), fn, zeros)
+
+
+def _centroid(patch: Patch, psi: Array) -> Patch:
+    """The paper's centroid mode for friction: one point at chi carrying the whole pair."""
+    total = jnp.sum(psi)
+    mean = lambda x: (x @ psi / jnp.where(total > 0, total, 1.0))[:, None]  # noqa: E731
+    normal = patch.normal if patch.normal.shape[1] == 1 else normalize(mean(patch.normal)[:, 0])[:, None]
+    return Patch(mean(patch.r_a), mean(patch.r_b), mean(patch.u_b), patch.w_b, normal, total[None])
 
 
 def implicit_step(
@@ -169,108 +173,85 @@ def implicit_step(
         V_free.append(jnp.concatenate([v, f.w + h * jnp.linalg.solve(inertia_w[i], ext[3:])]))
     V_free = jnp.concatenate(V_free)
 
-    def frames_at(z):
-        xi, V = z[: 6 * n].reshape(n, 6), z[6 * n :].reshape(n, 6)
-        return [_moved(f, xi[i], V[i]) for i, f in enumerate(frames)]
-
-    def normal_forces(z):
-        """Stage 1's forces at displacement/velocity z = (xi, V): the total wrench on each DANO
-        (6n,), each pair's wrench on its DANO (p, 6) and each point's normal force (p x (k,))."""
-        fr = frames_at(z)
-        W = jnp.zeros((n, 6))
-        per_pair, normal, geometry = [], [], []
-        for p, (i, _, _), mate in zip(params.contact, pair_list, mates, strict=True):
-            a = fr[i]
-            b = fr[mate.dano] if mate.dano >= 0 else mate.frame
-            pts = pair_points(world, p, mate, bodies, i, a, b)
-            u_n = jnp.sum(relative_velocity(pts, a, b) * pts.normal, axis=0)
-            N = pts.psi * (p.impact_spring - p.impact_damper * u_n)
-            w = wrench_about(pts, N[None] * pts.normal, a.x)
-            W = W.at[i].add(w)
-            if mate.dano >= 0:
-                W = W.at[mate.dano].add(reaction_of(w, a.x, b.x))
-            per_pair.append(w)
-            normal.append(N)
-            geometry.append(pts)
-        out = (W.reshape(-1), tuple(per_pair), tuple(normal))
-        return out, (out, tuple(geometry))
-
-    # Linearised at the predicted end of the step (displacement h V~, velocity V~): a contact that
-    # the step would reach is felt in that step, so a fast body is stopped at the surface instead
-    # of a step's travel inside it.
-    z0 = jnp.concatenate([h * V_free, V_free])
-    jac, ((W0, w0, N0), geometry) = jax.jacfwd(normal_forces, has_aux=True)(z0)
-    J_W, J_w, J_N = jac
-    K, D = J_W[:, : 6 * n], J_W[:, 6 * n :]
-    A = M - h * D - h * h * K
-    dV = jnp.linalg.solve(A, h * W0)
-    V_star = V_free + dV
-    dz = jnp.concatenate([h * dV, dV])
-    N_end = [N + J @ dz for N, J in zip(N0, J_N, strict=True)]
-    w_normal = [w + J @ dz for w, J in zip(w0, J_w, strict=True)]
-
-    # Stage 2: friction at the same (predicted) geometry, with the normal forces of stage 1.
-    start = frames_at(z0)
-    bare = []
-    for (i, _, _), mate, pts in zip(pair_list, mates, geometry, strict=True):
+    # The geometry, frozen at the pose the free motion reaches (so a contact that the step would
+    # reach acts in that step), and each pair's points' lever arms and partner velocities.
+    start = [_moved(f, h * V_free[6 * i : 6 * i + 6], V_free[6 * i : 6 * i + 6]) for i, f in enumerate(frames)]
+    supports, patches = [], []
+    for p, (i, _, _), mate in zip(params.contact, pair_list, mates, strict=True):
         a = start[i]
         b = start[mate.dano] if mate.dano >= 0 else mate.frame
-        zero = jnp.zeros_like(pts.at)
-        none = jnp.zeros_like(pts.psi)
+        sup = _support(world, p, mate, bodies, i, a, b)
+        zero = jnp.zeros_like(sup.at)
         if mate.dano >= 0:
-            bare.append(Patch(pts.at - a.x[:, None], pts.at - b.x[:, None], zero, jnp.zeros(3), pts.normal, none))
+            patch = Patch(sup.at - a.x[:, None], sup.at - b.x[:, None], zero, jnp.zeros(3), sup.normal, sup.weight)
         else:
-            u_b = b.v[:, None] + jnp.cross(b.w[:, None], pts.at - b.x[:, None], axis=0)
-            bare.append(Patch(pts.at - a.x[:, None], zero, u_b, b.w, pts.normal, none))
+            u_b = b.v[:, None] + jnp.cross(b.w[:, None], sup.at - b.x[:, None], axis=0)
+            patch = Patch(sup.at - a.x[:, None], zero, u_b, b.w, sup.normal, sup.weight)
+            # the partner's own motion over the step brings it nearer (n . u_b > 0) or takes it away
+            ahead = sup.gain * h * jnp.sum(jnp.broadcast_to(sup.normal, u_b.shape) * u_b, axis=0)
+            sup = Support(sup.at, sup.normal, sup.weight, sup.s0 + ahead, sup.gain, sup.smooth)
+        supports.append(sup)
+        patches.append(patch)
 
-    def linearised(values, jacobians, V):
-        """Stage 1's linearised forces at the end-of-step velocities V instead of V*."""
-        e = V - V_star
-        de = jnp.concatenate([h * e, e])
-        return [x + J @ de for x, J in zip(values, jacobians, strict=True)]
-
-    def pair_terms(patches, j, V):
-        """D of pair j, its gradient (6n,) and Hessian (6n, 6n) at the DANOs' velocities V (6n,)."""
+    def pair_velocity(j, V):
         i, mate = pair_list[j][0], mates[j]
         V_b = V[6 * mate.dano : 6 * mate.dano + 6] if mate.dano >= 0 else jnp.zeros(6)
-        value, g, H = patch_terms(params.contact[j], patches[j], V[6 * i : 6 * i + 6], V_b)
+        return jnp.concatenate([V[6 * i : 6 * i + 6], V_b])
+
+    def scatter_pair(j, g, H):
+        """A pair's (12,) gradient and (12, 12) Hessian into the (6n,) and (6n, 6n) of all DANOs."""
+        i, mate = pair_list[j][0], mates[j]
         o = 6 * max(mate.dano, 0)
         idx = jnp.concatenate([jnp.arange(6 * i, 6 * i + 6), jnp.arange(o, o + 6)])
         keep = 12 if mate.dano >= 0 else 6
         idx, g, H = idx[:keep], g[:keep], H[:keep, :keep]
-        return value, jnp.zeros(6 * n).at[idx].add(g), jnp.zeros((6 * n, 6 * n)).at[idx[:, None], idx[None, :]].add(H)
+        return jnp.zeros(6 * n).at[idx].add(g), jnp.zeros((6 * n, 6 * n)).at[idx[:, None], idx[None, :]].add(H)
 
-    # Friction moves the bodies against the stiff normal support, not through free space: its
-    # quadratic is stage 1's operator A (symmetric part, no softer than half the bare inertia), so
-    # the friction under a box slows it down instead of pitching it into the floor.
-    M_f = _at_least(0.5 * (A + A.T), M)
-    total_mass = sum(b.mass for b in bodies)
+    u_n0 = [normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(patches)]
 
-    def friction_solve(V_guess):
-        """Friction at the normal forces stage 1's operator gives at V_guess (the support also
-        answers friction's own torque: at V* alone a box on a slope felt 0.5 % too little)."""
-        patches = [
-            eqx.tree_at(lambda q: q.N, base, friction_normal(N))
-            for base, N in zip(bare, linearised(N_end, J_N, V_guess), strict=True)
-        ]
+    # The damper's overlaps, lagged: at the pose the free motion reaches.
+    psi0 = [overlap(sup, sup.s0) for sup in supports]
 
-        def objective(V):
-            e = V - V_star
-            value, g, H = 0.5 * e @ M_f @ e, M_f @ e, M_f
+    def with_friction(V):
+        """Each pair's friction patch at the normal forces delivered at the velocities V."""
+        out = []
+        for j, (p, sup, pt) in enumerate(zip(params.contact, supports, patches, strict=True)):
+            _, _, _, s, u_n = normal_terms(p, sup, pt, psi0[j], u_n0[j], h, pair_velocity(j, V))
+            N = friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * psi0[j] * u_n)
+            fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N)
+            out.append(_centroid(fr, N) if world.force_mode == "centroid" else fr)
+        return out
+
+    def pair_terms(j, friction, V):
+        """Pair j's U + h R (+ h D with the friction patches, a list, or None) at V, with its
+        gradient and Hessian w.r.t. the pair's (V_a, V_b)."""
+        Vj = pair_velocity(j, V)
+        value, g, H, _, _ = normal_terms(params.contact[j], supports[j], patches[j], psi0[j], u_n0[j], h, Vj)
+        if friction is None:
+            return value, g, H
+        fv, fg, fH = patch_terms(params.contact[j], friction[j], Vj[:6], Vj[6:])
+        return value + h * fv, g + h * fg, H + h * fH
+
+    def objective(friction):
+        def f(V):
+            e = V - V_free
+            value, g, H = 0.5 * e @ M @ e, M @ e, M
             for j in range(len(pair_list)):
-                vj, gj, Hj = pair_terms(patches, j, V)
-                value, g, H = value + h * vj, g + h * gj, H + h * Hj
+                vj, gj, Hj = pair_terms(j, friction, V)
+                gj, Hj = scatter_pair(j, gj, Hj)
+                value, g, H = value + vj, g + gj, H + Hj
             return value, g, H
 
-        return minimize_convex(objective, V_guess, 1e-20 * total_mass), patches
+        return f
 
-    V_next = V_star
-    patches = None
-    for _ in range(FRICTION_PASSES if pair_list else 0):
-        V_next, patches = friction_solve(V_next)
-    w_final = linearised(w_normal, J_w, V_next)
+    total_mass = sum(b.mass for b in bodies)
+    V_next, friction = V_free, None
+    for k in range(PASSES if pair_list else 0):
+        friction = with_friction(V_next) if k else None
+        V_next = minimize_convex(objective(friction), V_next, 1e-20 * total_mass)
 
-    # Reactions on MuJoCo bodies; DANOs are integrated here.
+    # Reactions on MuJoCo bodies (the pair's force on the DANO is -dT/dV_a / h); DANOs are
+    # integrated here.
     xfrc = jnp.zeros_like(d.xfrc_applied)
     if external is not None:
         keep = jnp.ones(xfrc.shape[0]).at[jnp.asarray(world.dano_body)].set(0.0)
@@ -278,9 +259,9 @@ def implicit_step(
     for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
         if mate.body < 0:
             continue
-        friction = -pair_terms(patches, j, V_next)[1][6 * i : 6 * i + 6]
+        wrench = -pair_terms(j, friction, V_next)[1][:6] / h
         centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
-        xfrc = scatter(xfrc, mate.body, reaction_of(w_final[j] + friction, frames[i].x, centre))
+        xfrc = scatter(xfrc, mate.body, reaction_of(wrench, frames[i].x, centre))
     d = mjx_step(m, d.replace(xfrc_applied=xfrc))
 
     qpos, qvel = d.qpos, d.qvel
