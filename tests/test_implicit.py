@@ -174,3 +174,36 @@ def test_implicit_step_gradients_match_central_differences(flat_box):
     fd = np.asarray(partial_differences(lambda *t: f(jnp.asarray(t)), theta, rel_step=1e-5))
     np.testing.assert_allclose(grad, fd, rtol=2e-4, atol=1e-12)
     assert grad[0] < 0 and grad[2] > 0  # more friction, shorter slide; faster start, further
+
+
+@pytest.mark.parametrize("joint", [False, True])
+@pytest.mark.parametrize("shared_normal", [False, True])
+def test_analytic_friction_and_support_terms_match_autodiff(joint, shared_normal):
+    """The step's Newton solve uses hand-written gradients and Hessians of friction's dissipation
+    and of the normal spring + damper potential (a few matrix products over the points): check them
+    against jax.grad / jax.hessian of the values, at slip speeds on both sides of v_s."""
+    from dano.contact.friction import Patch, patch_terms
+    from dano.contact.support import Support, normal_terms
+
+    rng = np.random.default_rng(3)
+    k, m = 40, 12 if joint else 6
+    r_a = jnp.asarray(rng.normal(size=(3, k)) * 0.05)
+    r_b = jnp.asarray(rng.normal(size=(3, k)) * 0.05) if joint else jnp.zeros((3, k))
+    u_b = jnp.zeros((3, k)) if joint else jnp.asarray(rng.normal(size=(3, k)) * 1e-5)
+    w_b = jnp.zeros(3) if joint else jnp.asarray(rng.normal(size=3) * 1e-3)
+    normal = rng.normal(size=(3, 1 if shared_normal else k))
+    normal = jnp.asarray(normal / np.linalg.norm(normal, axis=0))
+    N = jnp.asarray(rng.uniform(0.0, 2.0, size=k))
+    patch = Patch(r_a, r_b, u_b, w_b, normal, N, joint)
+    p = ContactParams(sliding_friction=0.4, torsional_friction=0.02, rolling_friction=0.01, sliding_drag=0.3)
+    support = Support(r_a, normal, N * 1e-3, jnp.asarray(rng.uniform(-1.5, 1.5, size=k)),
+                      jnp.asarray(rng.uniform(1.0, 2e3, size=k)), True)  # fmt: skip
+    psi, u_n0, h = N * 1e-3 * 0.5, jnp.asarray(rng.normal(size=k) * 1e-2), 0.002
+    for scale in (1e-6, 1e-4, 0.3):  # slips below, near and far above v_s = 1e-5 m/s
+        V = jnp.asarray(rng.normal(size=m) * scale)
+        for terms in (lambda V: patch_terms(p, patch, V), lambda V: normal_terms(p, support, patch, psi, u_n0, h, V)):
+            _, g, H = terms(V)[:3]
+            value = lambda V: terms(V)[0]  # noqa: B023, E731
+            np.testing.assert_allclose(g, jax.grad(value)(V), rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(g))))
+            H_auto = jax.hessian(value)(V)
+            np.testing.assert_allclose(H, H_auto, rtol=1e-7, atol=1e-9 * float(jnp.max(jnp.abs(H_auto))))

@@ -25,7 +25,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dano.contact.wrench import ContactParams
-from dano.math import cross_matrix
 
 SPIN_LENGTH = 0.01
 """m: spin sticks below v_s / SPIN_LENGTH rad/s (a point 1 cm from the axis slipping at v_s)."""
@@ -35,7 +34,9 @@ class Patch(eqx.Module):
     """A pair's friction data, frozen over the step: lever arms from the DANO's centre `r_a` (3, k)
     and from a DANO partner's `r_b` (3, k) (zeros otherwise), the partner's velocity at each point
     `u_b` (3, k) and angular velocity `w_b` (3,) when it is not solved for (zeros otherwise),
-    normals (3, k) or (3, 1), normal forces N (k,) >= 0."""
+    normals (3, k) or (3, 1), normal forces N (k,) >= 0; `joint`: the partner is a DANO whose
+    velocity V_b is solved for with the DANO's (the pair's velocity vector is then (V_a, V_b), 12,
+    else V_a, 6)."""
 
     r_a: Float[Array, "3 k"]
     r_b: Float[Array, "3 k"]
@@ -43,6 +44,32 @@ class Patch(eqx.Module):
     w_b: Float[Array, " 3"]
     normal: Float[Array, "3 kn"]
     N: Float[Array, " k"]
+    joint: bool = eqx.field(static=True, default=False)
+
+
+def rows(patch: Patch, d: Float[Array, "3 k"]) -> Float[Array, "m k"]:
+    """Each point's row of d_i . (relative velocity at the point) w.r.t. the pair's velocity vector:
+    (d, r_a x d) for the DANO, (-d, -r_b x d) appended for a joint partner (m = 6 or 12)."""
+    out = [d, jnp.cross(patch.r_a, d, axis=0)]
+    if patch.joint:
+        out += [-d, -jnp.cross(patch.r_b, d, axis=0)]
+    return jnp.concatenate(out)
+
+
+def tangents(n: Float[Array, "3 k"]) -> tuple[Array, Array]:
+    """Two unit tangents (3, k) completing unit normals n (3, k) to orthonormal bases (Duff et al.,
+    "Building an orthonormal basis, revisited", 2017: no branch, no division by ~0)."""
+    sign = jnp.where(n[2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[2])
+    b = n[0] * n[1] * a
+    t1 = jnp.stack([1.0 + sign * n[0] * n[0] * a, sign * b, -sign * n[0]])
+    t2 = jnp.stack([b, sign + n[1] * n[1] * a, -n[1]])
+    return t1, t2
+
+
+def _gram(G: Array, c: Array) -> Array:
+    """sum_i c_i G_i G_i^T for rows G (m, k) and weights c (k,) (one matrix product)."""
+    return (G * c[None]) @ G.T
 
 
 def _law(coef, drag, a: Array, vs) -> tuple[Array, Array, Array]:
@@ -54,50 +81,37 @@ def _law(coef, drag, a: Array, vs) -> tuple[Array, Array, Array]:
     return value, coef / s + drag, coef / (s * s * s)
 
 
-def patch_terms(p: ContactParams, patch: Patch, V_a: Float[Array, " 6"], V_b: Float[Array, " 6"]):
-    """D of one pair (module docstring) at the DANO's velocity V_a and a DANO partner's V_b (zeros
-    for other partners), its gradient w.r.t. (V_a, V_b) (12,) and Hessian (12, 12), analytically
-    (a few passes over the points: the step's friction solve evaluates these many times)."""
+def patch_terms(p: ContactParams, patch: Patch, V: Float[Array, " m"]):
+    """D of one pair (module docstring) at the pair's velocity vector V (V_a, 6, or (V_a, V_b), 12,
+    for a joint DANO partner), its gradient (m,) and Hessian (m, m), analytically and as a few
+    matrix products over the points (the step's friction solve evaluates these many times)."""
     gain = p.coulomb_gain * (jnp.pi / 2)
     vs, ws = p.stiction_velocity, p.stiction_velocity / SPIN_LENGTH
     n, N = patch.normal, patch.N
-    u = (V_a[:3, None] + jnp.cross(V_a[3:, None], patch.r_a, axis=0)) - patch.u_b
+    V_b = V[6:] if patch.joint else jnp.zeros(6, V.dtype)
+    u = (V[:3, None] + jnp.cross(V[3:6, None], patch.r_a, axis=0)) - patch.u_b
     u = u - V_b[:3, None] - jnp.cross(V_b[3:, None], patch.r_b, axis=0)
-    w = V_a[3:] - V_b[3:] - patch.w_b
+    w = V[3:6] - V_b[3:] - patch.w_b
     u_t = u - jnp.sum(u * n, axis=0, keepdims=True) * n
     w_n = w @ n
     w_t = w[:, None] - w_n[None] * n
     slide, c_s, e_s = _law(gain * p.sliding_friction, p.sliding_drag, u_t, vs)
     twist, c_n, e_n = _law(gain * p.torsional_friction, p.torsional_drag, w_n, ws)
     roll, c_r, e_r = _law(gain * p.rolling_friction, p.rolling_drag, w_t, ws)
-    k = N.shape[0]
     Nn = jnp.broadcast_to(jnp.sum(N) if n.shape[1] == 1 else N, w_n.shape)  # weights of the spin terms
     value = jnp.sum(N * slide) + jnp.sum(Nn * (twist + roll))
-    g_u = (N * c_s)[None] * u_t  # (3, k) dD/du
-    g_w = (Nn * c_n * w_n) @ n.T + jnp.sum((Nn * c_r)[None] * w_t, axis=1)  # (3,) dD/dw
-    eye = jnp.eye(3)
-    P = eye[None] - jnp.einsum("ik,jk->kij", n, n)  # (k or 1, 3, 3) tangent projectors
-    H_u = (N * c_s)[:, None, None] * P - (N * e_s)[:, None, None] * jnp.einsum("ik,jk->kij", u_t, u_t)
-    H_u = jnp.broadcast_to(H_u, (k, 3, 3))
-    nn = jnp.einsum("ik,jk->kij", n, n)
-    H_w = jnp.sum((Nn * (c_n - e_n * w_n * w_n))[:, None, None] * nn, axis=0)
-    roll_t = jnp.einsum("ik,jk->kij", w_t, w_t)
-    H_w = H_w + jnp.sum((Nn * c_r)[:, None, None] * P - (Nn * e_r)[:, None, None] * roll_t, axis=0)
 
-    def blocks(r_x, r_y):
-        """sum_i J_x^T H_u J_y with J = [I, -[r]x] (velocity of a point at lever r)."""
-        Rx, Ry = cross_matrix(r_x.T), cross_matrix(r_y.T)
-        vv = jnp.sum(H_u, axis=0)
-        vw = -jnp.sum(H_u @ Ry, axis=0)
-        wv = jnp.sum(Rx @ H_u, axis=0)
-        ww = -jnp.sum(Rx @ H_u @ Ry, axis=0)
-        return jnp.block([[vv, vw], [wv, ww]])
-
-    rot = jnp.zeros((6, 6)).at[3:, 3:].set(H_w)
-    H_aa = blocks(patch.r_a, patch.r_a) + rot
-    H_ab = -blocks(patch.r_a, patch.r_b) - rot
-    H_bb = blocks(patch.r_b, patch.r_b) + rot
-    grad_a = jnp.concatenate([jnp.sum(g_u, axis=1), jnp.sum(jnp.cross(patch.r_a, g_u, axis=0), axis=1) + g_w])
-    grad_b = -jnp.concatenate([jnp.sum(g_u, axis=1), jnp.sum(jnp.cross(patch.r_b, g_u, axis=0), axis=1) + g_w])
-    H = jnp.block([[H_aa, H_ab], [H_ab.T, H_bb]])
-    return value, jnp.concatenate([grad_a, grad_b]), H
+    # Slip: the point's Hessian N c_s (t1 t1^T + t2 t2^T) - N e_s u_t u_t^T (t1, t2 a tangent
+    # basis), through each point's rows, as one matrix product.
+    t1, t2 = tangents(jnp.broadcast_to(n, u_t.shape))
+    grad = rows(patch, u_t) @ (N * c_s)
+    G = jnp.concatenate([rows(patch, t1), rows(patch, t2), rows(patch, u_t)], axis=1)
+    H = _gram(G, jnp.concatenate([N * c_s, N * c_s, -N * e_s]))
+    # Spin (twist about n, roll about the tangents): functions of the relative angular velocity.
+    g_w = n @ (Nn * c_n * w_n) + w_t @ (Nn * c_r)
+    H_w = (n * (Nn * (c_n - e_n * w_n * w_n))[None]) @ n.T
+    H_w = H_w + jnp.sum(Nn * c_r) * jnp.eye(3) - (n * (Nn * c_r)[None]) @ n.T - (w_t * (Nn * e_r)[None]) @ w_t.T
+    spin = jnp.zeros((V.shape[0], 3)).at[3:6].set(jnp.eye(3))
+    if patch.joint:
+        spin = spin.at[9:12].set(-jnp.eye(3))
+    return value, grad + spin @ g_w, H + spin @ H_w @ spin.T

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from dano.contact.friction import Patch
+from dano.contact.friction import Patch, rows
 from dano.contact.overlap import Primitive, outward_normal, signed_distance
 from dano.contact.pairs import Body, Frame, occupancy, world_points
 from dano.contact.wrench import ContactParams
@@ -97,17 +97,19 @@ def dano_support(A: Body, B: Body, a: Frame, b: Frame) -> Support:
     )
 
 
-def normal_velocity(patch: Patch, V: Float[Array, " 12"]) -> tuple[Array, Array]:
+def normal_velocity(patch: Patch, V: Float[Array, " m"]) -> tuple[Array, Array]:
     """Each point's normal relative velocity u_n (k,) = n . (v_a + w_a x r_a - u_b - v_b - w_b x r_b)
-    at V = (V_a, V_b) (a DANO partner's V_b; zeros otherwise), and its rows d u_n / dV (12, k)."""
+    at the pair's velocity vector V (V_a, or (V_a, V_b) for a joint DANO partner), and its rows
+    d u_n / dV (m, k)."""
     n = jnp.broadcast_to(patch.normal, patch.r_a.shape)
-    J = jnp.concatenate([n, jnp.cross(patch.r_a, n, axis=0), -n, -jnp.cross(patch.r_b, n, axis=0)])
+    J = rows(patch, n)
     return J.T @ V - jnp.sum(n * patch.u_b, axis=0), J
 
 
-def normal_terms(p: ContactParams, support: Support, patch: Patch, psi: Array, u_n0: Array, h, V: Float[Array, " 12"]):
+def normal_terms(p: ContactParams, support: Support, patch: Patch, psi: Array, u_n0: Array, h, V: Float[Array, " m"]):
     """The pair's spring potential U plus h times its damper's Rayleigh function (module docstring)
-    at the velocities V = (V_a, V_b), with gradient (12,) and Hessian (12, 12). `patch` gives the
+    at the pair's velocity vector V (m = 6, or 12 for a joint DANO partner), with gradient (m,) and
+    Hessian (m, m). `patch` gives the
     points' lever arms and the partner's velocity (its N is not used), `psi` (k,) the damper's lagged
     overlaps, `u_n0` (k,) the normal velocities at V~.
 

@@ -46,7 +46,10 @@ PASSES = 3
 the previous one delivered (so that they include the support's answer to friction's own torque)."""
 
 NEWTON_ITERATIONS = 40
-"""At most this many Newton steps for the friction stage (it stops when a step moves < 1e-13)."""
+"""At most this many Newton steps per solve (it stops at convergence, see `minimize_convex`)."""
+
+MIN_STEP = 2.0**-30
+"""The line search gives up (and the solve stops where it is) below this fraction of a Newton step."""
 
 
 def _moved(f: Frame, xi: Float[Array, " 6"], V: Float[Array, " 6"]) -> Frame:
@@ -82,12 +85,15 @@ def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array,
             slope = g @ dx
 
             def too_long(t):
-                return (objective(x + t * dx)[0] > f0 + 1e-4 * t * slope) & (t > 1e-12)
+                return (objective(x + t * dx)[0] > f0 + 1e-4 * t * slope) & (t > MIN_STEP)
 
-            small = -slope < tol
+            # Converged: the decrement is below tol, or below what rounding lets the value resolve
+            # (then no step can pass the line search, which would only halve down to MIN_STEP).
+            small = -slope < tol + 64 * jnp.finfo(x.dtype).eps * jnp.abs(f0)
             one = jnp.ones((), x.dtype)
             t = jax.lax.cond(small, lambda: one, lambda: jax.lax.while_loop(too_long, lambda t: 0.5 * t, one))
-            return k + 1, x + t * dx, small
+            stuck = t <= MIN_STEP
+            return k + 1, jnp.where(stuck, x, x + t * dx), small | stuck
 
         def going(state):
             k, _, done = state
@@ -145,7 +151,7 @@ def _centroid(patch: Patch, psi: Array) -> Patch:
     total = jnp.sum(psi)
     mean = lambda x: (x @ psi / jnp.where(total > 0, total, 1.0))[:, None]  # noqa: E731
     normal = patch.normal if patch.normal.shape[1] == 1 else normalize(mean(patch.normal)[:, 0])[:, None]
-    return Patch(mean(patch.r_a), mean(patch.r_b), mean(patch.u_b), patch.w_b, normal, total[None])
+    return Patch(mean(patch.r_a), mean(patch.r_b), mean(patch.u_b), patch.w_b, normal, total[None], patch.joint)
 
 
 def implicit_step(
@@ -183,7 +189,9 @@ def implicit_step(
         sup = _support(world, p, mate, bodies, i, a, b)
         zero = jnp.zeros_like(sup.at)
         if mate.dano >= 0:
-            patch = Patch(sup.at - a.x[:, None], sup.at - b.x[:, None], zero, jnp.zeros(3), sup.normal, sup.weight)
+            patch = Patch(
+                sup.at - a.x[:, None], sup.at - b.x[:, None], zero, jnp.zeros(3), sup.normal, sup.weight, True
+            )
         else:
             u_b = b.v[:, None] + jnp.cross(b.w[:, None], sup.at - b.x[:, None], axis=0)
             patch = Patch(sup.at - a.x[:, None], zero, u_b, b.w, sup.normal, sup.weight)
@@ -193,18 +201,17 @@ def implicit_step(
         supports.append(sup)
         patches.append(patch)
 
-    def pair_velocity(j, V):
+    def slots(j) -> list[int]:
+        """Where pair j's velocity vector (V_a, or (V_a, V_b) with a DANO partner) sits in V."""
         i, mate = pair_list[j][0], mates[j]
-        V_b = V[6 * mate.dano : 6 * mate.dano + 6] if mate.dano >= 0 else jnp.zeros(6)
-        return jnp.concatenate([V[6 * i : 6 * i + 6], V_b])
+        return list(range(6 * i, 6 * i + 6)) + (list(range(6 * mate.dano, 6 * mate.dano + 6)) if mate.dano >= 0 else [])
+
+    def pair_velocity(j, V):
+        return V[jnp.asarray(slots(j))]
 
     def scatter_pair(j, g, H):
-        """A pair's (12,) gradient and (12, 12) Hessian into the (6n,) and (6n, 6n) of all DANOs."""
-        i, mate = pair_list[j][0], mates[j]
-        o = 6 * max(mate.dano, 0)
-        idx = jnp.concatenate([jnp.arange(6 * i, 6 * i + 6), jnp.arange(o, o + 6)])
-        keep = 12 if mate.dano >= 0 else 6
-        idx, g, H = idx[:keep], g[:keep], H[:keep, :keep]
+        """A pair's gradient (m,) and Hessian (m, m) into the (6n,) and (6n, 6n) of all DANOs."""
+        idx = jnp.asarray(slots(j))
         return jnp.zeros(6 * n).at[idx].add(g), jnp.zeros((6 * n, 6 * n)).at[idx[:, None], idx[None, :]].add(H)
 
     u_n0 = [normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(patches)]
@@ -218,18 +225,18 @@ def implicit_step(
         for j, (p, sup, pt) in enumerate(zip(params.contact, supports, patches, strict=True)):
             _, _, _, s, u_n = normal_terms(p, sup, pt, psi0[j], u_n0[j], h, pair_velocity(j, V))
             N = friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * psi0[j] * u_n)
-            fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N)
+            fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
             out.append(_centroid(fr, N) if world.force_mode == "centroid" else fr)
         return out
 
     def pair_terms(j, friction, V):
         """Pair j's U + h R (+ h D with the friction patches, a list, or None) at V, with its
-        gradient and Hessian w.r.t. the pair's (V_a, V_b)."""
+        gradient and Hessian w.r.t. the pair's velocity vector."""
         Vj = pair_velocity(j, V)
         value, g, H, _, _ = normal_terms(params.contact[j], supports[j], patches[j], psi0[j], u_n0[j], h, Vj)
         if friction is None:
             return value, g, H
-        fv, fg, fH = patch_terms(params.contact[j], friction[j], Vj[:6], Vj[6:])
+        fv, fg, fH = patch_terms(params.contact[j], friction[j], Vj)
         return value + h * fv, g + h * fg, H + h * fH
 
     def objective(friction):
@@ -245,10 +252,15 @@ def implicit_step(
         return f
 
     total_mass = sum(b.mass for b in bodies)
+    # The first friction solve starts from the velocities the step starts with, not from the
+    # frictionless answer: a body that friction holds is near them, while without friction it
+    # may slip and turn (a resting box: 1.5 mm/s at its face, far out on the Coulomb law's flat
+    # part, where Newton needs ~20 damped steps to come back instead of ~4).
+    V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in frames])
     V_next, friction = V_free, None
     for k in range(PASSES if pair_list else 0):
         friction = with_friction(V_next) if k else None
-        V_next = minimize_convex(objective(friction), V_next, 1e-20 * total_mass)
+        V_next = minimize_convex(objective(friction), V_now if k == 1 else V_next, 1e-20 * total_mass)
 
     # Reactions on MuJoCo bodies (the pair's force on the DANO is -dT/dV_a / h); DANOs are
     # integrated here.
