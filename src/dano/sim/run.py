@@ -2,7 +2,10 @@
 
 Penalty contact is stiff: when the time step is too large for the spring and damper, the state
 grows without bound. `check_trajectory` turns that into a `SimulationError` that names the first
-bad frame and the likely cause, instead of returning NaNs.
+bad frame and the likely cause, instead of returning NaNs. Before a blow-up there is an energy
+gain: `audit_energy` checks that a scene with nothing driving it (no robot, no actuated or mocap
+primitive, no controls or external wrenches) never has more mechanical energy than it started
+with, and names the frame, the body, its contacts' penetration and the time step when it does.
 """
 
 import csv
@@ -11,21 +14,29 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from mujoco import mjx
 
+from dano.contact.overlap import signed_distance
+from dano.contact.pairs import world_points
 from dano.errors import DanoError
 from dano.io import atomic_write
-from dano.sim.scene import Scene, compile_scene
-from dano.sim.step import Trajectory, rollout
+from dano.sim.scene import Scene, compile_scene, pair_name, pairs
+from dano.sim.step import Trajectory, dano_bodies, dano_frames, partners, rollout
 
 
 class SimulationError(DanoError):
-    """The simulation blew up (non-finite state or runaway speed)."""
+    """The simulation blew up (non-finite state or runaway speed) or made energy from nowhere."""
 
 
 MAX_SPEED = 100.0
 """m/s (or rad/s * 0.1 m): beyond this a tabletop scene has certainly blown up."""
+
+ENERGY_TOLERANCE = 0.01
+"""`audit_energy`'s allowance above the initial energy, as a fraction of the scene's energy scale:
+its initial kinetic energy plus each free body's weight times its size (a 1 kg, 0.15 m box at
+rest: 15 mJ, the energy of a 1.5 mm hop)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,7 +73,10 @@ class Simulation:
 
             self._compiled[n] = jax.jit(go, compiler_options=compiler_options(self.world))
         fn = self._compiled[n]
-        traj = fn(self.params if params is None else params, self.data, ctrl, mocap_pos, external)
+        params = self.params if params is None else params
+        traj = fn(params, self.data, ctrl, mocap_pos, external)
+        if ctrl is None and mocap_pos is None and external is None:
+            audit_energy(traj, self, params)  # first: the energy grows before the state blows up
         check_trajectory(traj, self.scene)
         return traj
 
@@ -93,6 +107,104 @@ def check_trajectory(traj: Trajectory, scene: Scene) -> None:
             f"{scene.timestep / scene.substeps:.3g} s is likely too large for the contact spring/damper; "
             "raise substeps or lower impact_spring / impact_damper"
         )
+
+
+def driven(sim: Simulation) -> bool:
+    """Whether anything feeds energy into the scene: a robot, actuators, actuated or mocap primitives."""
+    return bool(sim.model.nu or sim.model.nmocap or any(m == "actuated" for m in sim.world.prim_mode))
+
+
+def mechanical_energy(sim: Simulation, params, qpos: np.ndarray, qvel: np.ndarray):
+    """Kinetic and gravitational energy (J) of each free body (DANOs at the mass and inertia
+    scales of `params`) at each state, from the compiled model's inertias: names, kinetic and
+    potential (T, bodies)."""
+    model, w = sim.model, sim.world
+    factors = zip(w.dano_body, np.asarray(params.mass_scale), np.asarray(params.inertia_scale), strict=True)
+    scale = {b: (float(ms), float(ms * s)) for b, ms, s in factors}
+    names, kinetic, potential = [], [], []
+    g = np.asarray(model.opt.gravity)
+    for j in np.flatnonzero(model.jnt_type == mujoco.mjtJoint.mjJNT_FREE):
+        b, a, v = int(model.jnt_bodyid[j]), int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+        mass_factor, inertia_factor = scale.get(b, (1.0, 1.0))
+        mass, moments = model.body_mass[b] * mass_factor, model.body_inertia[b] * inertia_factor
+        R = np.stack([_quat_mat(q) for q in qpos[:, a + 3 : a + 7]])  # body -> world
+        R_i = _quat_mat(model.body_iquat[b])  # inertial -> body
+        w_body = qvel[:, v + 3 : v + 6]
+        lever = R @ model.body_ipos[b]
+        v_com = qvel[:, v : v + 3] + np.cross(np.einsum("tij,tj->ti", R, w_body), lever)
+        w_i = w_body @ R_i
+        names.append(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_BODY, b) or f"body {b}")
+        kinetic.append(0.5 * mass * np.sum(v_com**2, axis=1) + 0.5 * np.sum(moments * w_i**2, axis=1))
+        potential.append(-mass * (qpos[:, a : a + 3] + lever) @ g)
+    stack = lambda c: np.stack(c, axis=1) if c else np.zeros((len(qpos), 0))  # noqa: E731
+    return names, stack(kinetic), stack(potential)
+
+
+def _quat_mat(q) -> np.ndarray:
+    out = np.zeros(9)
+    mujoco.mju_quat2Mat(out, np.asarray(q, dtype=float) / np.linalg.norm(q))
+    return out.reshape(3, 3)
+
+
+def audit_energy(traj: Trajectory, sim: Simulation, params=None) -> None:
+    """Raises `SimulationError` at the first frame whose total mechanical energy is above the
+    initial one by more than `ENERGY_TOLERANCE` of the scene's energy scale, in a scene that nothing
+    drives (`driven`); the message names the body that gained most, its contacts' deepest
+    penetration and the time step."""
+    if driven(sim):
+        return
+    params = sim.params if params is None else params
+    qpos, qvel = np.asarray(traj.qpos), np.asarray(traj.qvel)
+    names, kinetic, potential = mechanical_energy(sim, params, qpos, qvel)
+    if not names:
+        return
+    E = kinetic + potential
+    total = E.sum(axis=1)
+    weight = float(np.linalg.norm(sim.model.opt.gravity)) * sim.model.body_mass
+    size = 2.0 * np.array([sim.model.geom_rbound[sim.model.geom_bodyid == b].max(initial=0.0)
+                           for b in range(sim.model.nbody)])  # fmt: skip
+    for i, b in enumerate(sim.world.dano_body):
+        size[b] = 2.0 * float(np.max(np.linalg.norm(np.asarray(sim.world.danos[i].points), axis=0)))
+        weight[b] *= float(np.asarray(params.mass_scale)[i])
+    scale = float(np.sum(weight * size)) + float(kinetic[0].sum())
+    gain = total - total[0] > ENERGY_TOLERANCE * scale
+    broken = ~np.isfinite(total)  # `check_trajectory`'s to report, unless the energy grew before
+    if not gain.any() or (broken.any() and np.argmax(broken) < np.argmax(gain)):
+        return
+    f = int(np.argmax(gain))
+    worst = int(np.argmax(E[f] - E[0]))
+    raise SimulationError(
+        f"energy from nowhere: at frame {f} (t = {f * sim.scene.timestep:.4g} s) the scene has "
+        f"{total[f] - total[0]:+.3g} J more than at the start ({(total[f] - total[0]) / scale:.1%} of its energy "
+        f"scale {scale:.3g} J) with nothing driving it; most of it went to {names[worst]!r}"
+        f"{penetration(sim, params, qpos[f], qvel[f], names[worst])}; "
+        f"time step {sim.scene.timestep / sim.scene.substeps:.3g} s "
+        f"({sim.scene.integrator}). A body placed inside another releases the contact spring's energy; "
+        "otherwise lower impact_spring or raise substeps"
+        + ("" if sim.scene.integrator == "implicit" else ', or use integrator = "implicit"')
+    )
+
+
+def penetration(sim: Simulation, params, qpos: np.ndarray, qvel: np.ndarray, name: str) -> str:
+    """Where DANO `name` touches at this state, for a message: ", touching ground (3.2 mm deep)",
+    with every primitive partner it is inside of and every DANO partner; "" if none."""
+    w = sim.world
+    if name not in w.names:
+        return ""
+    d = sim.data.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+    bodies, frames = dano_bodies(w, params), dano_frames(w, d)
+    touching = []
+    for (i, kind, k), mate in zip(pairs(w), partners(w, d), strict=True):
+        other = pair_name(w, (i, kind, k))[1]
+        if name not in (w.names[i], other if kind == "dano" else None):
+            continue
+        if mate.shape is None:
+            touching.append(f"{w.names[i]} and {other}")
+            continue
+        depth = -float(jnp.min(signed_distance(mate.shape, world_points(bodies[i], frames[i]))))
+        if depth > 0:
+            touching.append(f"{other} ({1e3 * depth:.3g} mm deep)")
+    return f", touching {', '.join(touching)}" if touching else ""
 
 
 def body_poses(traj: Trajectory, sim: Simulation) -> dict[str, np.ndarray]:

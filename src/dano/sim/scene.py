@@ -301,7 +301,8 @@ def pairs(world: World) -> tuple[tuple[int, str, int], ...]:
     return tuple(out)
 
 
-def _pair_name(world: World, pair: tuple[int, str, int]) -> tuple[str, str]:
+def pair_name(world: World, pair: tuple[int, str, int]) -> tuple[str, str]:
+    """The names (DANO, partner) of a pair from `pairs` ("ground" for the ground)."""
     i, kind, k = pair
     other = {
         "ground": lambda: "ground",
@@ -484,7 +485,7 @@ def compile_scene(scene: Scene):
     )
     overrides = dict(scene.pair_contact)
     params = Params(
-        contact=tuple(overrides.get(_pair_name(world, pr), scene.contact) for pr in pairs(world)),
+        contact=tuple(overrides.get(pair_name(world, pr), scene.contact) for pr in pairs(world)),
         mass_scale=jnp.ones(len(danos)),
         inertia_scale=jnp.ones(len(danos)),
     )
