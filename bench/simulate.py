@@ -44,22 +44,31 @@ def timed_rollout(sim: Simulation, frames: int, batch: int | None = None):
 
 
 def integrators() -> None:
-    """The explicit step (4 substeps of 0.5 ms per 2 ms frame) beside the implicit one (one 2 ms step):
-    cost per frame and simulated seconds per second, a 5000-point flat box at rest and sliding."""
+    """The explicit step (4 substeps of 0.5 ms per 2 ms frame, the first wave's default) beside the
+    implicit one (one 2 ms step, the default): cost per frame, simulated seconds per second, JIT
+    compile, and the largest energy gain over the run (J above the start; > 0 is energy from nowhere),
+    for a 5000-point flat box at rest, sliding at 1 m/s (mu 0.5) and dropped flat from 0.3 m."""
     from dano.fields import BoxField
+    from dano.sim.run import mechanical_energy
 
     box = build_dano(BoxField([0.1, 0.1, 0.05]), n_points=5000, mass=1.0, log2_samples=13, grid_resolution=0)
     lift = -float(np.min(np.asarray(box.body_points)[:, 2]))
-    print(f"{'flat box, 5000 points':34}{'ms / 2 ms frame':>16}{'sim s / s':>12}{'JIT [s]':>10}")
-    for vx in (0.0, 1.0):
+    cases = (("at rest", (0, 0, lift), (0, 0, 0)), ("sliding", (0, 0, lift), (1, 0, 0)),
+             ("dropped 0.3 m", (0, 0, lift + 0.3), (0, 0, 0)))  # fmt: skip
+    head = f"{'flat box, 5000 points, 1 kg':34}{'ms / 2 ms frame':>16}{'sim s / s':>12}{'JIT [s]':>10}"
+    print(f"{head}{'max E gain [J]':>16}")
+    for label, pos, vel in cases:
         for integrator, substeps in (("explicit", 4), ("implicit", 1)):
-            scene = Scene(bodies=(DanoBody("box", box, pos=(0, 0, lift), vel=(vx, 0, 0)),), integrator=integrator,
-                          substeps=substeps)  # fmt: skip
-            sim = Simulation.from_scene(scene)
+            body = DanoBody("box", box, pos=pos, vel=vel)
+            sim = Simulation.from_scene(Scene(bodies=(body,), integrator=integrator, substeps=substeps))
             rate, compile_s = timed_rollout(sim, 200)
             frame_ms = 1e3 * substeps / rate
-            label = f"{integrator} x{substeps}, {'sliding' if vx else 'at rest'}"
-            print(f"{label:34}{frame_ms:>16.2f}{2.0 / frame_ms:>12.2f}{compile_s:>10.1f}")
+            traj = eqx.filter_jit(lambda d: rollout(sim.world, sim.params, sim.mjx_model, d, 500))(sim.data)  # noqa: B023
+            _, kinetic, potential = mechanical_energy(sim, sim.params, np.asarray(traj.qpos), np.asarray(traj.qvel))
+            energy = (kinetic + potential).sum(axis=1)
+            gain = np.nanmax(energy - energy[0]) if np.all(np.isfinite(energy)) else float("inf")
+            name = f"{integrator} x{substeps}, {label}"
+            print(f"{name:34}{frame_ms:>16.2f}{2.0 / frame_ms:>12.2f}{compile_s:>10.1f}{gain:>16.3g}")
 
 
 def main() -> None:

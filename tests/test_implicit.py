@@ -238,6 +238,34 @@ def test_implicit_step_gradients_match_central_differences(flat_box):
     assert grad[0] < 0 and grad[2] > 0  # more friction, shorter slide; faster start, further
 
 
+@pytest.mark.slow
+def test_implicit_rollout_jacobians_over_500_frames_match_central_differences(flat_box):
+    """jax.jacfwd and jax.jacrev of the final pose after 500 implicit 2 ms frames (1 s) w.r.t.
+    friction, mass scale, inertia scale and the initial velocity, against central differences: a
+    box pushed by a known 3 N (so the mass scale matters) while spinning (so the inertia does)."""
+    lift = -float(np.min(np.asarray(flat_box.body_points)[:, 2]))
+    body = DanoBody("b", flat_box, pos=(0, 0, lift), angvel=(0.0, 0.0, 2.0))
+    sim = Simulation.from_scene(Scene(bodies=(body,), integrator="implicit", substeps=1))
+    push = jnp.zeros((500, sim.model.nbody, 6)).at[:, sim.world.dano_body[0], 0].set(3.0)
+
+    def final(theta):
+        mu, alpha, inertia, vx = theta
+        contact = dataclasses.replace(sim.params.contact[0], sliding_friction=mu)
+        params = dataclasses.replace(sim.params, contact=(contact,), mass_scale=alpha[None],
+                                     inertia_scale=inertia[None])  # fmt: skip
+        d = sim.data.replace(qvel=sim.data.qvel.at[0].set(vx))
+        q = rollout(sim.world, params, sim.mjx_model, d, 500, external=push).qpos[-1]
+        return jnp.stack([q[0] + 0.3 * q[1], q[6]])  # where it went, and how far it turned
+
+    theta = (0.2, 1.2, 1.1, 0.8)
+    f = jax.jit(final)
+    fd = np.stack(partial_differences(lambda *t: f(jnp.asarray(t)), theta, rel_step=1e-5), axis=1)
+    for jac in (jax.jacfwd, jax.jacrev):
+        J = np.asarray(jax.jit(jac(final))(jnp.asarray(theta)))
+        np.testing.assert_allclose(J, fd, rtol=1e-3, atol=1e-6 * np.abs(fd).max())
+    assert np.all(np.abs(fd).max(axis=0) > 1e-2)  # every parameter matters to the pose
+
+
 @pytest.mark.parametrize("joint", [False, True])
 @pytest.mark.parametrize("shared_normal", [False, True])
 def test_analytic_friction_and_support_terms_match_autodiff(joint, shared_normal):
@@ -263,7 +291,11 @@ def test_analytic_friction_and_support_terms_match_autodiff(joint, shared_normal
     psi, u_n0, h = N * 1e-3 * 0.5, jnp.asarray(rng.normal(size=k) * 1e-2), 0.002
     for scale in (1e-6, 1e-4, 0.3):  # slips below, near and far above v_s = 1e-5 m/s
         V = jnp.asarray(rng.normal(size=m) * scale)
-        for terms in (lambda V: patch_terms(p, patch, V), lambda V: normal_terms(p, support, patch, psi, u_n0, h, V)):
+        for terms in (
+            lambda V: patch_terms(p, patch, V),
+            lambda V: normal_terms(p, support, patch, psi, u_n0, h, V),
+            lambda V: normal_terms(p, support, patch, psi, u_n0, h, V, centroid=True),
+        ):
             _, g, H = terms(V)[:3]
             value = lambda V: terms(V)[0]  # noqa: B023, E731
             np.testing.assert_allclose(g, jax.grad(value)(V), rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(g))))

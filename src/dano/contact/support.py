@@ -106,12 +106,23 @@ def normal_velocity(patch: Patch, V: Float[Array, " m"]) -> tuple[Array, Array]:
     return J.T @ V - jnp.sum(n * patch.u_b, axis=0), J
 
 
-def normal_terms(p: ContactParams, support: Support, patch: Patch, psi: Array, u_n0: Array, h, V: Float[Array, " m"]):
+def normal_terms(
+    p: ContactParams,
+    support: Support,
+    patch: Patch,
+    psi: Array,
+    u_n0: Array,
+    h,
+    V: Float[Array, " m"],
+    centroid: bool = False,
+):
     """The pair's spring potential U plus h times its damper's Rayleigh function (module docstring)
     at the pair's velocity vector V (m = 6, or 12 for a joint DANO partner), with gradient (m,) and
-    Hessian (m, m). `patch` gives the
-    points' lever arms and the partner's velocity (its N is not used), `psi` (k,) the damper's lagged
-    overlaps, `u_n0` (k,) the normal velocities at V~.
+    Hessian (m, m). `patch` gives the points' lever arms and the partner's velocity (its N is not
+    used), `psi` (k,) the damper's lagged overlaps, `u_n0` (k,) the normal velocities at V~.
+    `centroid`: the paper's centroid mode, the damper -c psi u_n(chi) acting at the overlap centroid
+    chi (u_n(chi) the psi-weighted mean of the points' u_n), not at each point: the same force, but
+    it does not damp rocking about chi.
 
     Also returns each point's spring depth s (k,) and normal velocity u_n (k,) at V."""
     u_n, J = normal_velocity(patch, V)
@@ -120,7 +131,18 @@ def normal_terms(p: ContactParams, support: Support, patch: Patch, psi: Array, u
     phi, sigma, slope = law(s, support.smooth)
     phi0 = law(support.s0, support.smooth)[0]
     k, c = p.impact_spring, p.impact_damper
-    value = jnp.sum(k * support.weight * (phi - phi0) / gain) + 0.5 * h * c * jnp.sum(psi * u_n * u_n)
-    d1 = -h * k * support.weight * sigma + h * c * psi * u_n  # d value / d u_n
-    d2 = h * h * k * support.weight * slope * gain + h * c * psi
+    value = jnp.sum(k * support.weight * (phi - phi0) / gain)
+    d1 = -h * k * support.weight * sigma  # d value / d u_n
+    d2 = h * h * k * support.weight * slope * gain
+    if centroid:
+        total = jnp.sum(psi)
+        share = psi / jnp.where(total > 0, total, 1.0)
+        u_chi, J_chi = share @ u_n, J @ share  # u_n at chi and its row d u_n(chi) / dV
+        value = value + 0.5 * h * c * total * u_chi * u_chi
+        grad = J @ d1 + h * c * total * u_chi * J_chi
+        hess = (J * d2[None]) @ J.T + h * c * total * jnp.outer(J_chi, J_chi)
+        return value, grad, hess, s, u_n
+    value = value + 0.5 * h * c * jnp.sum(psi * u_n * u_n)
+    d1 = d1 + h * c * psi * u_n
+    d2 = d2 + h * c * psi
     return value, J @ d1, (J * d2[None]) @ J.T, s, u_n

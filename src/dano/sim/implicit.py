@@ -214,6 +214,7 @@ def implicit_step(
         idx = jnp.asarray(slots(j))
         return jnp.zeros(6 * n).at[idx].add(g), jnp.zeros((6 * n, 6 * n)).at[idx[:, None], idx[None, :]].add(H)
 
+    centroid = world.force_mode == "centroid"  # friction and damper at chi (the spring per point)
     u_n0 = [normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(patches)]
 
     # The damper's overlaps, lagged: at the pose the free motion reaches.
@@ -223,17 +224,17 @@ def implicit_step(
         """Each pair's friction patch at the normal forces delivered at the velocities V."""
         out = []
         for j, (p, sup, pt) in enumerate(zip(params.contact, supports, patches, strict=True)):
-            _, _, _, s, u_n = normal_terms(p, sup, pt, psi0[j], u_n0[j], h, pair_velocity(j, V))
+            _, _, _, s, u_n = normal_terms(p, sup, pt, psi0[j], u_n0[j], h, pair_velocity(j, V), centroid)
             N = friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * psi0[j] * u_n)
             fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
-            out.append(_centroid(fr, N) if world.force_mode == "centroid" else fr)
+            out.append(_centroid(fr, N) if centroid else fr)
         return out
 
     def pair_terms(j, friction, V):
         """Pair j's U + h R (+ h D with the friction patches, a list, or None) at V, with its
         gradient and Hessian w.r.t. the pair's velocity vector."""
         Vj = pair_velocity(j, V)
-        value, g, H, _, _ = normal_terms(params.contact[j], supports[j], patches[j], psi0[j], u_n0[j], h, Vj)
+        value, g, H, _, _ = normal_terms(params.contact[j], supports[j], patches[j], psi0[j], u_n0[j], h, Vj, centroid)
         if friction is None:
             return value, g, H
         fv, fg, fH = patch_terms(params.contact[j], friction[j], Vj)

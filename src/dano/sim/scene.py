@@ -171,7 +171,8 @@ class Scene:
 
     Attributes:
         timestep: s, one recorded frame.
-        substeps: MuJoCo steps per frame (the penalty contact is stiff; see `dano.sim.step`).
+        substeps: steps per frame (4: the explicit integrator's stiff springs need ~0.5 ms; the
+            implicit step is stable at 1 per 2 ms frame, more only for accuracy; `dano.sim.step`).
         duration: s.
         gravity: (3,) m/s^2.
         ground_height: the ground is the half-space {x : normal . x <= height}, or None for none.
@@ -183,10 +184,11 @@ class Scene:
         force_mode: "points" applies each sampled point's own force at the point; "centroid" applies
             the total at the overlap centroid chi, as in the paper.
         robot: an optional robot (see `Robot`, `panda`).
-        integrator: "explicit" (default for now) applies the wrench at the current state (the
-            paper's scheme; needs ~0.5 ms steps; reproduces the reference data); "implicit" solves
-            the contact implicitly in the DANOs' velocities (stable at one 2 ms step per frame,
-            friction that sticks; `dano.sim.implicit`; not yet the default: see README).
+        integrator: "explicit" (still the default, see README) applies the wrench at the current
+            state (the paper's scheme: needs ~0.5 ms steps, `substeps=4`; it reproduces the paper
+            authors' stored trajectories, `dano.reference`); "implicit" solves the contact
+            implicitly in the DANOs' velocities (stable at one 2 ms step per frame at every Table I
+            corner, no energy gain, friction that sticks; `dano.sim.implicit`).
     """
 
     timestep: Number = 0.002
@@ -675,19 +677,20 @@ def load_scene(path) -> Scene:
     ground = doc.get("ground")
     if ground is not None:
         _check_keys(ground, {"height", "normal"}, "[ground]", path)
+    default = Scene()
     return Scene(
-        timestep=float(sim.get("timestep", 0.002)),
-        substeps=int(sim.get("substeps", 4)),
-        duration=float(sim.get("duration", 1.0)),
-        gravity=tuple(float(g) for g in sim.get("gravity", (0.0, 0.0, -9.81))),  # type: ignore[arg-type]
+        timestep=float(sim.get("timestep", default.timestep)),
+        substeps=int(sim.get("substeps", default.substeps)),
+        duration=float(sim.get("duration", default.duration)),
+        gravity=tuple(float(g) for g in sim.get("gravity", default.gravity)),  # type: ignore[arg-type]
         ground_height=None if ground is None else float(ground.get("height", 0.0)),
         ground_normal=tuple(float(v) for v in (ground or {}).get("normal", (0.0, 0.0, 1.0))),  # type: ignore[arg-type]
         bodies=tuple(bodies),
         primitives=tuple(prims),
         contact=contact,
         pair_contact=tuple(pair_contact),
-        force_mode=sim.get("force_mode", "points"),
-        integrator=_integrator(sim.get("integrator", "explicit"), path),
+        force_mode=sim.get("force_mode", default.force_mode),
+        integrator=_integrator(sim.get("integrator", default.integrator), path),
     )
 
 

@@ -6,7 +6,7 @@ One frame is `world.substeps` steps of `world.dt`. Two integrators (`Scene.integ
   the DANOs' velocities (backward Euler as one convex minimisation: spring potential, damper, friction),
   and the DANOs' rigid motion is integrated by dano; the reactions on MuJoCo bodies enter through
   `xfrc_applied` and `mjx.step` moves them. Stable at the 2 ms default with one step per frame.
-- "explicit" (the default for now): the wrench at the current state written to `xfrc_applied` before each `mjx.step`
+- "explicit" (still the default): the wrench at the current state written to `xfrc_applied` before each `mjx.step`
   (the paper's "computed explicitly at the current configuration"), with the linearly implicit
   damper; it needs ~0.5 ms steps, and reproduces the reference's stored trajectories.
 
