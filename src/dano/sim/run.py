@@ -19,9 +19,10 @@ import numpy as np
 from mujoco import mjx
 
 from dano.contact.overlap import signed_distance
-from dano.contact.pairs import world_points
+from dano.contact.pairs import occupancy, world_points
 from dano.errors import DanoError
 from dano.io import atomic_write
+from dano.math import quat_to_mat
 from dano.sim.scene import Scene, compile_scene, pair_name, pairs
 from dano.sim.step import Trajectory, dano_bodies, dano_frames, partners, rollout
 
@@ -127,8 +128,8 @@ def mechanical_energy(sim: Simulation, params, qpos: np.ndarray, qvel: np.ndarra
         b, a, v = int(model.jnt_bodyid[j]), int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
         mass_factor, inertia_factor = scale.get(b, (1.0, 1.0))
         mass, moments = model.body_mass[b] * mass_factor, model.body_inertia[b] * inertia_factor
-        R = np.stack([_quat_mat(q) for q in qpos[:, a + 3 : a + 7]])  # body -> world
-        R_i = _quat_mat(model.body_iquat[b])  # inertial -> body
+        R = np.asarray(quat_to_mat(qpos[:, a + 3 : a + 7]))  # body -> world
+        R_i = np.asarray(quat_to_mat(model.body_iquat[b]))  # inertial -> body
         w_body = qvel[:, v + 3 : v + 6]
         lever = R @ model.body_ipos[b]
         v_com = qvel[:, v : v + 3] + np.cross(np.einsum("tij,tj->ti", R, w_body), lever)
@@ -138,12 +139,6 @@ def mechanical_energy(sim: Simulation, params, qpos: np.ndarray, qvel: np.ndarra
         potential.append(-mass * (qpos[:, a : a + 3] + lever) @ g)
     stack = lambda c: np.stack(c, axis=1) if c else np.zeros((len(qpos), 0))  # noqa: E731
     return names, stack(kinetic), stack(potential)
-
-
-def _quat_mat(q) -> np.ndarray:
-    out = np.zeros(9)
-    mujoco.mju_quat2Mat(out, np.asarray(q, dtype=float) / np.linalg.norm(q))
-    return out.reshape(3, 3)
 
 
 def audit_energy(traj: Trajectory, sim: Simulation, params=None) -> None:
@@ -187,7 +182,7 @@ def audit_energy(traj: Trajectory, sim: Simulation, params=None) -> None:
 
 def penetration(sim: Simulation, params, qpos: np.ndarray, qvel: np.ndarray, name: str) -> str:
     """Where DANO `name` touches at this state, for a message: ", touching ground (3.2 mm deep)",
-    with every primitive partner it is inside of and every DANO partner; "" if none."""
+    with every primitive partner it is inside of and every DANO partner it overlaps; "" if none."""
     w = sim.world
     if name not in w.names:
         return ""
@@ -199,7 +194,11 @@ def penetration(sim: Simulation, params, qpos: np.ndarray, qvel: np.ndarray, nam
         if name not in (w.names[i], other if kind == "dano" else None):
             continue
         if mate.shape is None:
-            touching.append(f"{w.names[i]} and {other}")
+            A, B = bodies[i], bodies[k]
+            if A.field is not None and B.field is not None:
+                inside = jnp.max(occupancy(B, frames[k], world_points(A, frames[i])))
+                if float(jnp.maximum(inside, jnp.max(occupancy(A, frames[i], world_points(B, frames[k]))))) > 0:
+                    touching.append(f"{w.names[i]} and {other} overlapping")
             continue
         depth = -float(jnp.min(signed_distance(mate.shape, world_points(bodies[i], frames[i]))))
         if depth > 0:
