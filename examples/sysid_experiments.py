@@ -27,16 +27,18 @@ jax.config.update("jax_enable_x64", True)
 DEFAULT_SHARED = Path(__file__).resolve().parents[1] / ".." / "shared"
 
 
-def reference(shared: Path, first: int, frames: int, window: int, substeps: int) -> None:
+def reference(shared: Path, first: int, frames: int, window: int, substeps: int | None, integrator: str) -> None:
     from dano.reference import reference_drop_scene
 
     dojo = shared / "data" / "dojo"
-    print(f"rows {first}..{first + frames - 1} at 500 Hz, windows of {window} frames, {substeps} substeps per 2 ms")
+    substeps = substeps or (1 if integrator == "implicit" else 8)
+    print(f"rows {first}..{first + frames - 1} at 500 Hz, windows of {window} frames, "
+          f"{integrator} step, {substeps} per 2 ms frame")  # fmt: skip
     for mu in (0.1, 0.3, 0.7):
         track = read_tracks(dojo / "trajectories" / f"bunny_trajectory_{mu}.csv", fps=500.0)[""]
         rows = slice(first, first + frames)
         track = Track(t=track.t[rows], pos=track.pos[rows], quat=track.quat[rows], source=track.source)
-        scene = reference_drop_scene(dojo / "colliders" / "bunny_collider.npz", 0.5)
+        scene = reference_drop_scene(dojo / "colliders" / "bunny_collider.npz", 0.5, integrator=integrator)
         scene = dataclasses.replace(scene, substeps=substeps)
         # the file is noise-free and the stiff bounces need exact starts: no settling onto the floor
         problem = make_problem(scene, [Recording({"bunny": track})], ["friction"], window=window, settle=0.0)
@@ -94,13 +96,14 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=400, help="reference: first row (first bounce near 230)")
     parser.add_argument("--frames", type=int, default=501, help="reference: rows used")
     parser.add_argument("--window", type=int, default=25, help="reference: frames per shooting window")
-    parser.add_argument("--substeps", type=int, default=8, help="reference: simulator substeps per 2 ms frame")
+    parser.add_argument("--integrator", choices=["implicit", "explicit"], default="implicit", help="reference: the step")
+    parser.add_argument("--substeps", type=int, help="reference: steps per 2 ms frame (default 1 implicit, 8 explicit)")
     parser.add_argument("--seeds", type=int, default=3, help="soap: noise seeds")
     args = parser.parse_args()
     if args.experiment != "mesh-push" and not (args.shared / "data" / "dojo").is_dir():
         parser.error(f"reference data not found under {args.shared} (pass --shared)")
     if args.experiment == "reference":
-        reference(args.shared, args.first, args.frames, args.window, args.substeps)
+        reference(args.shared, args.first, args.frames, args.window, args.substeps, args.integrator)
     elif args.experiment == "mesh-push":
         mesh_push()
     else:

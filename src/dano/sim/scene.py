@@ -678,9 +678,12 @@ def load_scene(path) -> Scene:
     if ground is not None:
         _check_keys(ground, {"height", "normal"}, "[ground]", path)
     default = Scene()
+    integrator = _integrator(sim.get("integrator", default.integrator), path)
+    # the implicit step is stable at one step per frame, the explicit one needs ~0.5 ms steps
+    substeps = sim.get("substeps", 1 if integrator == "implicit" else default.substeps)
     return Scene(
         timestep=float(sim.get("timestep", default.timestep)),
-        substeps=int(sim.get("substeps", default.substeps)),
+        substeps=int(substeps),
         duration=float(sim.get("duration", default.duration)),
         gravity=tuple(float(g) for g in sim.get("gravity", default.gravity)),  # type: ignore[arg-type]
         ground_height=None if ground is None else float(ground.get("height", 0.0)),
@@ -690,7 +693,7 @@ def load_scene(path) -> Scene:
         contact=contact,
         pair_contact=tuple(pair_contact),
         force_mode=sim.get("force_mode", default.force_mode),
-        integrator=_integrator(sim.get("integrator", default.integrator), path),
+        integrator=integrator,
     )
 
 
