@@ -96,7 +96,7 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=400, help="reference: first row (first bounce near 230)")
     parser.add_argument("--frames", type=int, default=501, help="reference: rows used")
     parser.add_argument("--window", type=int, default=25, help="reference: frames per shooting window")
-    parser.add_argument("--integrator", choices=["implicit", "explicit"], default="implicit", help="reference: the step")
+    parser.add_argument("--integrator", choices=["implicit", "explicit"], default="implicit", help="reference: step")
     parser.add_argument("--substeps", type=int, help="reference: steps per 2 ms frame (default 1 implicit, 8 explicit)")
     parser.add_argument("--seeds", type=int, default=3, help="soap: noise seeds")
     args = parser.parse_args()

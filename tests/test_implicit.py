@@ -154,11 +154,12 @@ def test_mechanical_energy_is_the_closed_form_and_free_flight_keeps_it(turned_bo
 
 def test_energy_from_nowhere_is_a_named_simulation_error():
     """The explicit step at its first-wave defaults (4 substeps of 0.5 ms): a flat box dropped
-    from 0.3 m rebounds higher than it fell. The audit stops it at the frame the energy grows and names the body, the ground and
-    its penetration, and the time step."""
+    from 0.3 m rebounds higher than it fell. The audit stops it at the frame the energy grows and
+    names the body, the ground and its penetration, and the time step."""
     obj = dano.build_dano(BoxField([0.1, 0.06, 0.03]), n_points=1000, mass=0.5, log2_samples=12, replicates=4,
                           grid_resolution=0)  # fmt: skip
-    sim = Simulation.from_scene(Scene(bodies=(DanoBody("box", obj, pos=(0, 0, 0.3)),), integrator="explicit", substeps=4))
+    scene = Scene(bodies=(DanoBody("box", obj, pos=(0, 0, 0.3)),), integrator="explicit", substeps=4)
+    sim = Simulation.from_scene(scene)
     with pytest.raises(SimulationError, match=r"energy from nowhere.*'box', touching ground \(.* mm deep\).*0\.0005 s"):
         sim.run()
 

@@ -66,7 +66,8 @@ def test_toml_scene_keys_as_documented(ball_dir):
 @pytest.mark.parametrize(
     "lines, integrator, substeps",
     [("", "explicit", 4), ('integrator = "implicit"', "implicit", 1),
-     ('integrator = "implicit"\nsubsteps = 3', "implicit", 3), ('integrator = "explicit"\nsubsteps = 2', "explicit", 2)],
+     ('integrator = "implicit"\nsubsteps = 3', "implicit", 3),
+     ('integrator = "explicit"\nsubsteps = 2', "explicit", 2)],
 )  # fmt: skip
 def test_toml_substeps_default_to_what_the_integrator_needs(ball_dir, tmp_path, lines, integrator, substeps):
     """The implicit step runs one step per frame unless the file says otherwise, the explicit four."""
