@@ -31,7 +31,8 @@ def reference(shared: Path, first: int, frames: int, window: int, substeps: int 
     from dano.reference import reference_drop_scene
 
     dojo = shared / "data" / "dojo"
-    substeps = substeps or (1 if integrator == "implicit" else 8)
+    if substeps is None:
+        substeps = 1 if integrator == "implicit" else 8
     print(f"rows {first}..{first + frames - 1} at 500 Hz, windows of {window} frames, "
           f"{integrator} step, {substeps} per 2 ms frame")  # fmt: skip
     for mu in (0.1, 0.3, 0.7):
@@ -100,6 +101,8 @@ def main() -> None:
     parser.add_argument("--substeps", type=int, help="reference: steps per 2 ms frame (default 1 implicit, 8 explicit)")
     parser.add_argument("--seeds", type=int, default=3, help="soap: noise seeds")
     args = parser.parse_args()
+    if args.substeps is not None and args.substeps < 1:
+        parser.error(f"--substeps must be at least 1, got {args.substeps}")
     if args.experiment != "mesh-push" and not (args.shared / "data" / "dojo").is_dir():
         parser.error(f"reference data not found under {args.shared} (pass --shared)")
     if args.experiment == "reference":

@@ -10,6 +10,7 @@ from dano.fields import BoxField
 from dano.math import quat_to_mat
 from dano.sim import DanoBody, Params, Primitive, Scene
 from dano.sim.run import Simulation, SimulationError
+from dano.sim.scene import DEFAULT_SUBSTEPS
 from dano.sim.step import rollout
 from helpers import partial_differences
 
@@ -55,7 +56,7 @@ def _slide(cube, smoothing: float, mode: str = "points", integrator: str = "expl
     contact = ContactParams(sliding_friction=0.5, coulomb_smoothing=smoothing)
     body = DanoBody("c", cube, pos=(0, 0, _rest_height(cube)), vel=(1.0, 0, 0))
     scene = Scene(bodies=(body,), contact=contact, force_mode=mode, integrator=integrator,
-                  substeps=4 if integrator == "explicit" else 1)  # fmt: skip
+                  substeps=DEFAULT_SUBSTEPS[integrator])  # fmt: skip
     return Simulation.from_scene(scene).run(500)
 
 
@@ -131,7 +132,7 @@ def test_blow_up_is_reported_with_the_frame(cube):
 @pytest.mark.parametrize("integrator", ["explicit", "implicit"])
 def test_vmap_of_rollouts_equals_a_loop(cube, integrator):
     body = DanoBody("c", cube, pos=(0, 0, _rest_height(cube)))
-    scene = Scene(bodies=(body,), integrator=integrator, substeps=4 if integrator == "explicit" else 1)
+    scene = Scene(bodies=(body,), integrator=integrator, substeps=DEFAULT_SUBSTEPS[integrator])
     sim = Simulation.from_scene(scene)
 
     def final_x(vx):

@@ -89,8 +89,8 @@ def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array,
 
             # Converged: the decrement is below tol, or below what rounding lets the value resolve
             # (then no step can pass the line search, which would only halve down to MIN_STEP).
-            # (A loop guarded by ~small, not a cond: under vmap a cond runs both branches, and a
-            # converged member's line search would then halve down to MIN_STEP every iteration.)
+            # The guard is in the loop's condition, not a cond around it: under vmap a cond runs
+            # both branches, so a converged member would search too.
             small = -slope < tol + 64 * jnp.finfo(x.dtype).eps * jnp.abs(f0)
             one = jnp.ones((), x.dtype)
             t = jax.lax.while_loop(lambda t: ~small & too_long(t), lambda t: 0.5 * t, one)

@@ -165,6 +165,11 @@ def _robot_spec(robot: Robot) -> mujoco.MjSpec:
     return mujoco.MjSpec.from_file(str(path))
 
 
+DEFAULT_SUBSTEPS = {"implicit": 1, "explicit": 4}
+"""Steps per frame each integrator needs at the default 2 ms frame: the implicit step is stable at
+one, the explicit one's stiff springs need ~0.5 ms."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Scene:
     """Everything a simulation needs (see README for the TOML form).
@@ -192,7 +197,7 @@ class Scene:
     """
 
     timestep: Number = 0.002
-    substeps: int = 4
+    substeps: int = DEFAULT_SUBSTEPS["explicit"]
     duration: Number = 1.0
     gravity: Vec3 = (0.0, 0.0, -9.81)
     ground_height: Number | None = 0.0
@@ -679,8 +684,7 @@ def load_scene(path) -> Scene:
         _check_keys(ground, {"height", "normal"}, "[ground]", path)
     default = Scene()
     integrator = _integrator(sim.get("integrator", default.integrator), path)
-    # the implicit step is stable at one step per frame, the explicit one needs ~0.5 ms steps
-    substeps = sim.get("substeps", 1 if integrator == "implicit" else default.substeps)
+    substeps = sim.get("substeps", DEFAULT_SUBSTEPS[integrator])
     return Scene(
         timestep=float(sim.get("timestep", default.timestep)),
         substeps=int(substeps),
