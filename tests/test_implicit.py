@@ -272,7 +272,8 @@ def test_implicit_rollout_jacobians_over_500_frames_match_central_differences(fl
 def test_analytic_friction_and_support_terms_match_autodiff(joint, shared_normal):
     """The step's Newton solve uses hand-written gradients and Hessians of friction's dissipation
     and of the normal spring + damper potential (a few matrix products over the points): check them
-    against jax.grad / jax.hessian of the values, at slip speeds on both sides of v_s."""
+    against jax.grad / jax.hessian of the values, at slip speeds on both sides of v_s; some points
+    held (gain 0, the hard indicator's force fixed over the step)."""
     from dano.contact.friction import Patch, patch_terms
     from dano.contact.support import Support, normal_terms
 
@@ -287,8 +288,8 @@ def test_analytic_friction_and_support_terms_match_autodiff(joint, shared_normal
     N = jnp.asarray(rng.uniform(0.0, 2.0, size=k))
     patch = Patch(r_a, r_b, u_b, w_b, normal, N, joint)
     p = ContactParams(sliding_friction=0.4, torsional_friction=0.02, rolling_friction=0.01, sliding_drag=0.3)
-    support = Support(r_a, normal, N * 1e-3, jnp.asarray(rng.uniform(-1.5, 1.5, size=k)),
-                      jnp.asarray(rng.uniform(1.0, 2e3, size=k)), True)  # fmt: skip
+    gain = rng.uniform(1.0, 2e3, size=k) * (np.arange(k) % 4 > 0)  # every 4th held (the hard indicator)
+    support = Support(r_a, normal, N * 1e-3, jnp.asarray(rng.uniform(-1.5, 1.5, size=k)), jnp.asarray(gain), True)
     psi, u_n0, h = N * 1e-3 * 0.5, jnp.asarray(rng.normal(size=k) * 1e-2), 0.002
     for scale in (1e-6, 1e-4, 0.3):  # slips below, near and far above v_s = 1e-5 m/s
         V = jnp.asarray(rng.normal(size=m) * scale)

@@ -39,8 +39,9 @@ outside, pushes with a force that hardly changes over the step; the floor keeps 
 
 class Support(eqx.Module):
     """A pair's points at the predicted pose: world points `at` (3, k), unit normals from the partner
-    towards the DANO (3, k) or (3, 1), weights (k,) kg, depths s0 (k,) and gains (k,) 1/m; `smooth`:
-    the primitive's smootherstep law (True) or the DANO occupancy's clip (False)."""
+    towards the DANO (3, k) or (3, 1), weights (k,) kg, depths s0 (k,) and gains (k,) 1/m (0: the
+    force is held at s0 over the step, the hard indicator's); `smooth`: the primitive's
+    smootherstep law (True) or the DANO occupancy's clip (False)."""
 
     at: Float[Array, "3 k"]
     normal: Float[Array, "3 kn"]
@@ -69,12 +70,16 @@ def overlap(support: Support, s: Array) -> Array:
 
 
 def primitive_support(shape: Primitive, body: Body, a: Frame, delta) -> Support:
-    """A DANO against a primitive {f <= 0}: s = -f / delta, gain 1 / delta, normals grad f."""
+    """A DANO against a primitive {f <= 0}: s = -f / delta, gain 1 / delta, normals grad f.
+
+    delta = 0 is the hard inside test: each point's force is then a step in its depth, so it is
+    taken at the predicted pose and held over the step (gain 0; `normal_terms`), as Dojo does."""
     P = world_points(body, a)
     safe = jnp.where(delta > 0, delta, 1e-9)  # delta = 0, the hard indicator, is the limit
     s0 = -signed_distance(shape, P) / safe
     normal = jax.vmap(outward_normal, (None, 1), 1)(shape, P)
-    return Support(P, normal, body.weights, s0, jnp.full_like(s0, 1.0 / safe), True)
+    gain = jnp.where(delta > 0, 1.0 / safe, 0.0)
+    return Support(P, normal, body.weights, s0, jnp.full_like(s0, gain), True)
 
 
 def dano_support(A: Body, B: Body, a: Frame, b: Frame) -> Support:
@@ -92,7 +97,7 @@ def dano_support(A: Body, B: Body, a: Frame, b: Frame) -> Support:
         n[:, None],
         jnp.concatenate([A.weights, B.weights]),
         jnp.concatenate([occ_b, occ_a]),
-        jnp.concatenate([slope_a, slope_b]),
+        jnp.maximum(jnp.concatenate([slope_a, slope_b]), MIN_GAIN),
         False,
     )
 
@@ -126,14 +131,18 @@ def normal_terms(
 
     Also returns each point's spring depth s (k,) and normal velocity u_n (k,) at V."""
     u_n, J = normal_velocity(patch, V)
+    # gain 0: a force that is a step in the depth (the hard indicator) is held at s0 over the step;
+    # its potential is then linear in V (k w sigma(s0) d), Newton's Hessian has no spring part.
+    held = support.gain <= 0.0
     gain = jnp.maximum(support.gain, MIN_GAIN)
-    s = support.s0 - h * gain * (u_n - u_n0)
+    d = -h * (u_n - u_n0)  # each point's further approach over the step
+    s = jnp.where(held, support.s0, support.s0 + gain * d)
     phi, sigma, slope = law(s, support.smooth)
     phi0 = law(support.s0, support.smooth)[0]
     k, c = p.impact_spring, p.impact_damper
-    value = jnp.sum(k * support.weight * (phi - phi0) / gain)
+    value = jnp.sum(k * support.weight * jnp.where(held, sigma * d, (phi - phi0) / gain))
     d1 = -h * k * support.weight * sigma  # d value / d u_n
-    d2 = h * h * k * support.weight * slope * gain
+    d2 = jnp.where(held, 0.0, h * h * k * support.weight * slope * gain)
     if centroid:
         total = jnp.sum(psi)
         share = psi / jnp.where(total > 0, total, 1.0)
