@@ -1,5 +1,7 @@
 """A URDF robot (the Franka Panda of example-robot-data) in a DANO scene."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -69,7 +71,13 @@ def test_a_servo_too_stiff_for_its_joint_is_refused(cube):
     # kv h / M = 2.2: MuJoCo's explicit damping would ring up, so the scene is refused by name.
     from dano.sim.scene import SceneError, compile_scene
 
-    scene = Scene(bodies=(DanoBody("cube", cube, pos=(0.5, 0, 0.1)),), robot=panda(armature=None))
+    body = DanoBody("cube", cube, pos=(0.5, 0, 0.1))
+    scene = Scene(bodies=(body,), robot=panda(armature=None), integrator="explicit")
     with pytest.raises(SceneError, match="panda_joint7"):
         compile_scene(scene)
-    compile_scene(Scene(bodies=scene.bodies, robot=panda()))  # 0.1 kg m² by default: accepted
+    compile_scene(Scene(bodies=scene.bodies, robot=panda(), integrator="explicit"))  # 0.1 kg m² by default: accepted
+    # The implicit step compiles MuJoCo's implicitfast integrator (servo damping implicit): the same
+    # bare hand at one 2 ms step holds its pose instead of ringing up.
+    sim = Simulation.from_scene(dataclasses.replace(scene, integrator="implicit", substeps=1))
+    traj = sim.run(100, ctrl=jnp.tile(sim.data.qpos[: sim.model.nu], (100, 1)))
+    assert np.all(np.isfinite(np.asarray(traj.qpos))) and float(jnp.max(jnp.abs(traj.qvel[-1, : sim.model.nu]))) < 0.1

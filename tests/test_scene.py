@@ -8,6 +8,7 @@ from dano.cli import main
 from dano.fields import BoxField, SphereField
 from dano.sim import DanoBody, Scene, SceneError, load_scene
 from dano.sim.run import Simulation
+from dano.sim.scene import DEFAULT_SUBSTEPS
 
 SCENE = """
 [sim]
@@ -65,16 +66,18 @@ def test_toml_scene_keys_as_documented(ball_dir):
 
 @pytest.mark.parametrize(
     "lines, integrator, substeps",
-    [("", "explicit", 4), ('integrator = "implicit"', "implicit", 1),
+    [("", "implicit", 1), ('integrator = "explicit"', "explicit", 4), ('integrator = "implicit"', "implicit", 1),
      ('integrator = "implicit"\nsubsteps = 3', "implicit", 3),
      ('integrator = "explicit"\nsubsteps = 2', "explicit", 2)],
 )  # fmt: skip
 def test_toml_substeps_default_to_what_the_integrator_needs(ball_dir, tmp_path, lines, integrator, substeps):
-    """The implicit step runs one step per frame unless the file says otherwise, the explicit four."""
+    """The implicit step (the default) runs one step per frame unless the file says otherwise, the
+    explicit four; `Scene()` resolves its substeps the same way."""
     (tmp_path / "ball.dano.npz").write_bytes((ball_dir / "ball.dano.npz").read_bytes())
     (tmp_path / "s.toml").write_text(SCENE.replace("[sim]\n", f"[sim]\n{lines}\n", 1))
     scene = load_scene(tmp_path / "s.toml")
     assert (scene.integrator, scene.substeps) == (integrator, substeps)
+    assert Scene(integrator=integrator).substeps == DEFAULT_SUBSTEPS[integrator]
 
 
 @pytest.mark.parametrize(

@@ -168,28 +168,36 @@ def test_rollout_gradients_match_finite_differences(cube):
         assert abs(float(g)) > 1e-3, i
 
 
-def test_per_point_forces_resist_spin_without_torsional_friction(cube):
+@pytest.mark.parametrize("integrator", ["implicit", "explicit"])
+def test_per_point_forces_resist_spin_without_torsional_friction(cube, integrator):
     """The paper's limitation (i): with forces at the single centroid, nothing but the torsional
     coefficient resists spinning; applied per point, sliding friction does, as on a real face.
 
     A cube spinning at w0 on its face with dry friction mu stops after turning w0^2 I / (2 mu m g r),
-    r = 0.3826 a the mean distance of a square face of side a from its centre: 6.3 deg here.
+    r = 0.3826 a the mean distance of a square face of side a from its centre: 6.4 deg here. In
+    centroid mode the only brake is friction at chi, which the sampled face puts a little off the
+    axis: the explicit step's smoothed law hardly feels that slip (1.35 rad/s left after 1 s), the
+    implicit step's sharp one does (0.46 rad/s left), and both are far from stopping.
     """
     contact = ContactParams(torsional_friction=0.0, rolling_friction=0.0)
     body = DanoBody("c", cube, pos=(0, 0, _rest_height(cube)), angvel=(0, 0, 5.0))
     turned = {}
     for mode in ("points", "centroid"):
-        traj = Simulation.from_scene(Scene(bodies=(body,), contact=contact, force_mode=mode)).run(500)
+        scene = Scene(bodies=(body,), contact=contact, force_mode=mode, integrator=integrator)
+        traj = Simulation.from_scene(scene).run(500)
         turned[mode] = np.degrees(2 * np.arctan2(float(traj.qpos[-1, 6]), float(traj.qpos[-1, 3])))
         spin = float(traj.qvel[-1, 5])
         if mode == "points":
             assert abs(spin) < 0.01
         else:
-            assert spin > 1.0  # still spinning after 1 s
+            assert spin > (1.0 if integrator == "explicit" else 0.25)  # still spinning after 1 s
     inertia = float(cube.inertia[2, 2])
     expected = np.degrees(25 * inertia / (2 * 0.5 * 1.0 * G * 0.3826 * 0.1))
-    # The smoothed Coulomb law is weaker than dry friction below ~0.1 m/s, so it turns a bit further.
-    assert expected < turned["points"] < 1.6 * expected
+    if integrator == "explicit":
+        # The smoothed Coulomb law is weaker than dry friction below ~0.1 m/s: it turns further.
+        assert expected < turned["points"] < 1.6 * expected
+    else:  # dry friction to within the stiction velocity: the closed form (measured 0.7 % short)
+        assert abs(turned["points"] / expected - 1.0) < 0.03
 
 
 def test_slope_with_any_ground_normal(cube):

@@ -171,7 +171,11 @@ def test_gravity_can_be_given_instead_of_fitted(slide, bar, tmp_path):
 
 @pytest.mark.slow
 def test_push_identifies_mass_scale_and_friction(bunny_field):
-    """Paper Fig. 6b: pushes by a 1 kg sphere under a known force (6 here, 10 in the paper); same simulator: < 0.1 %."""
+    """Paper Fig. 6b: pushes by a 1 kg sphere under a known force (6 here, 10 in the paper), same
+    simulator, noise-free. The explicit step's fit reached the truth to < 0.1 %; at the implicit
+    default (one 2 ms step) LM converges (ftol 1e-10: the same point) to a minimum with loss 0.16
+    (RMS 0.01 sigma) at alpha -0.34 %, mu -0.05 % (measured): the fitted initial velocities absorb
+    the rest. Held to 0.5 %."""
     bunny = dano.build_dano(bunny_field, n_points=400, mass=0.5)
     scene = push_scene(bunny, friction=0.3)
     truth = {"mass_scale": 1.3, "sliding_friction": 0.35}
@@ -179,7 +183,7 @@ def test_push_identifies_mass_scale_and_friction(bunny_field):
     problem = make_problem(scene, recordings, ["mass_scale", "friction"], initial="velocity", settle=0.0)
     result = identify(problem, init={"mass_scale": 1.0, "sliding_friction": 0.5}, progress=False)
     for name, value in truth.items():
-        assert abs(result.theta[problem.names.index(name)] - value) < 1e-3 * value, result.params
+        assert abs(result.theta[problem.names.index(name)] - value) < 5e-3 * value, result.params
 
 
 @pytest.mark.slow
@@ -207,7 +211,7 @@ def test_same_rate_scene_is_not_resampled(slide):
     scene, track = slide
     problem = make_problem(scene, [Recording({"object": track})], ["friction"])
     assert problem.scene.timestep == pytest.approx(1 / 120)
-    assert problem.scene.substeps == at_rate(scene, 120.0).substeps == 17
+    assert problem.scene.substeps == at_rate(scene, 120.0).substeps == 5  # 1/120 s in steps <= 2 ms
 
 
 def test_float32_is_refused_with_a_named_error(slide):

@@ -176,8 +176,9 @@ class Scene:
 
     Attributes:
         timestep: s, one recorded frame.
-        substeps: steps per frame (4: the explicit integrator's stiff springs need ~0.5 ms; the
-            implicit step is stable at 1 per 2 ms frame, more only for accuracy; `dano.sim.step`).
+        substeps: steps per frame; None (default) for the integrator's own (`DEFAULT_SUBSTEPS`: 1
+            for the implicit step, stable at one 2 ms step per frame, more only for accuracy; 4 for
+            the explicit one, whose stiff springs need ~0.5 ms; `dano.sim.step`).
         duration: s.
         gravity: (3,) m/s^2.
         ground_height: the ground is the half-space {x : normal . x <= height}, or None for none.
@@ -189,15 +190,15 @@ class Scene:
         force_mode: "points" applies each sampled point's own force at the point; "centroid" applies
             the total at the overlap centroid chi, as in the paper.
         robot: an optional robot (see `Robot`, `panda`).
-        integrator: "explicit" (still the default, see README) applies the wrench at the current
-            state (the paper's scheme: needs ~0.5 ms steps, `substeps=4`; it reproduces the paper
-            authors' stored trajectories, `dano.reference`); "implicit" solves the contact
-            implicitly in the DANOs' velocities (stable at one 2 ms step per frame at every Table I
-            corner, no energy gain, friction that sticks; `dano.sim.implicit`).
+        integrator: "implicit" (default) solves the contact implicitly in the DANOs' velocities
+            (stable at one 2 ms step per frame at every Table I corner, no energy gain, friction
+            that sticks; `dano.sim.implicit`); "explicit" applies the wrench at the current state
+            (the paper's scheme: needs ~0.5 ms steps, `substeps=4`; free flight reproduces the
+            paper authors' stored trajectories, `dano.reference`).
     """
 
     timestep: Number = 0.002
-    substeps: int = DEFAULT_SUBSTEPS["explicit"]
+    substeps: int | None = None
     duration: Number = 1.0
     gravity: Vec3 = (0.0, 0.0, -9.81)
     ground_height: Number | None = 0.0
@@ -208,7 +209,11 @@ class Scene:
     pair_contact: tuple[tuple[tuple[str, str], ContactParams], ...] = ()
     force_mode: Literal["points", "centroid"] = "points"
     robot: Robot | None = None
-    integrator: Literal["implicit", "explicit"] = "explicit"
+    integrator: Literal["implicit", "explicit"] = "implicit"
+
+    def __post_init__(self):
+        if self.substeps is None and self.integrator in DEFAULT_SUBSTEPS:
+            object.__setattr__(self, "substeps", DEFAULT_SUBSTEPS[self.integrator])
 
     @property
     def n_steps(self) -> int:
@@ -279,7 +284,7 @@ class World(eqx.Module):
     substeps: int = eqx.field(static=True)
     dt: float = eqx.field(static=True)
     force_mode: str = eqx.field(static=True)
-    integrator: str = eqx.field(static=True, default="explicit")
+    integrator: str = eqx.field(static=True, default="implicit")
 
 
 class Params(eqx.Module):
@@ -422,6 +427,10 @@ def compile_scene(scene: Scene):
     robot_bodies = _prepare_robot(spec, scene.robot) if scene.robot is not None else []
     spec.option.timestep = scene.timestep / scene.substeps
     spec.option.gravity = list(scene.gravity)
+    if scene.integrator == "implicit":
+        # MuJoCo's own velocity-dependent forces (servo damping kv) implicit too, as the contact:
+        # at one 2 ms step per frame Euler's explicit damping rings up on a light joint.
+        spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     _add_visuals(spec)
     if scene.ground_height is not None:
         n = np.asarray(_unit(scene.ground_normal))
@@ -532,7 +541,9 @@ def _prepare_robot(spec: mujoco.MjSpec, robot: Robot) -> list[str]:
 
 def _check_servo_damping(model: mujoco.MjModel, qpos: np.ndarray) -> None:
     """Raises `SceneError` where a joint servo's damping (kv = -biasprm[2]) is explicitly unstable
-    at `qpos`: kv h / M_jj >= 2."""
+    at `qpos`: kv h / M_jj >= 2 under Euler (`implicitfast` integrates it implicitly)."""
+    if model.opt.integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
+        return
     data = mujoco.MjData(model)
     data.qpos[:] = qpos
     mujoco.mj_forward(model, data)
@@ -549,7 +560,8 @@ def _check_servo_damping(model: mujoco.MjModel, qpos: np.ndarray) -> None:
             raise SceneError(
                 f"the servo of joint {model.joint(joint).name!r} is unstable: kv h / M = {kv:g} x "
                 f"{model.opt.timestep:g} s / {M[dof, dof]:.3g} = {ratio:.2f} >= 2 (MuJoCo integrates its "
-                "damping explicitly); give the robot an armature, a smaller kv, or a smaller time step"
+                "damping explicitly); give the robot an armature, a smaller kv, a smaller time step, or use "
+                'integrator = "implicit"'
             )
 
 

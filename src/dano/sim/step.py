@@ -2,11 +2,11 @@
 
 One frame is `world.substeps` steps of `world.dt`. Two integrators (`Scene.integrator`):
 
-- "implicit": `implicit_step` (`dano.sim.implicit`): the contact is solved implicitly in
+- "implicit" (default): `implicit_step` (`dano.sim.implicit`): the contact is solved implicitly in
   the DANOs' velocities (backward Euler as one convex minimisation: spring potential, damper, friction),
   and the DANOs' rigid motion is integrated by dano; the reactions on MuJoCo bodies enter through
   `xfrc_applied` and `mjx.step` moves them. Stable at the 2 ms default with one step per frame.
-- "explicit" (still the default): the wrench at the current state written to `xfrc_applied` before each `mjx.step`
+- "explicit": the wrench at the current state written to `xfrc_applied` before each `mjx.step`
   (the paper's "computed explicitly at the current configuration"), with the linearly implicit
   damper; it needs ~0.5 ms steps, and reproduces the reference's stored trajectories.
 
