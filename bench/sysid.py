@@ -1,8 +1,8 @@
 """Identification speed: friction from a 33-frame slide (120 Hz, ~0.27 s), cold and warm.
 
 The paper reports 2.0 s on a laptop CPU to fit the soap's friction from its video. Here, on the
-same kind of data (a 9 x 6 x 3 cm bar of soap, 2000 surface points, per-point contact, 0.5 ms
-substeps, noise-free so every solver must reach the truth):
+same kind of data (a 9 x 6 x 3 cm bar of soap, 2000 surface points, per-point contact, the default
+implicit step: five 1.67 ms steps per 120 Hz frame; noise-free so every solver must reach the truth):
 
 - dano.sysid.identify (projected LM, block Jacobians), friction only, initial state from the data
   (the paper's setting) and with the initial velocity fitted too;

@@ -3,11 +3,14 @@
     python examples/sysid_experiments.py reference [--shared ../shared]   # Dojo.jl's bunny drops
     python examples/sysid_experiments.py mesh-push                        # data from MuJoCo C
     python examples/sysid_experiments.py soap [--shared ../shared]        # the reference bluesoap
+    python examples/sysid_experiments.py drops [--integrator explicit]    # Dojo.jl's drops, simulated
 
 reference: identify μ from the paper authors' simulated `bunny_trajectory_<μ>.csv` (500 Hz, rows
     from the first bounce on), in shooting windows of 25 frames restarted from the file's poses.
 mesh-push: ten pushes of the bunny by a 1 kg sphere under a known force, simulated by MuJoCo C with
     the bunny mesh (CoACD pieces, 0.65 kg, μ = 0.35); identify α and μ of a 0.5 kg DANO.
+drops: the three bunny drops simulated whole at the files' 2 ms, one step per frame (or
+    --substeps), against the files: distance travelled and the rest pose.
 soap: the reference bluesoap DANO scaled to 9 cm slides on a table (μ = 0.5, 33 frames at 120 Hz,
     1 mm noise, three seeds); identify μ and the initial velocity.
 """
@@ -47,6 +50,22 @@ def reference(shared: Path, first: int, frames: int, window: int, substeps: int 
         fit, err = r.params["sliding_friction"], r.stderr["sliding_friction"]
         print(f"  mu {mu}: fitted {fit:.4f} +/- {err:.4f} ({fit / mu - 1:+.1%}), {r.iterations} iterations, "
               f"{r.seconds:.1f} s, RMS position {r.rms_position * 1e3:.2f} mm")  # fmt: skip
+
+
+def drops(shared: Path, substeps: int | None, integrator: str) -> None:
+    from dano.reference import reference_drop_scene
+    from dano.sim.run import Simulation
+
+    dojo = shared / "data" / "dojo"
+    for mu in (0.1, 0.3, 0.7):
+        data = np.loadtxt(dojo / "trajectories" / f"bunny_trajectory_{mu}.csv", delimiter=",", skiprows=1)
+        scene = reference_drop_scene(dojo / "colliders" / "bunny_collider.npz", mu, integrator=integrator)
+        scene = dataclasses.replace(scene, substeps=substeps or 1)
+        q = np.asarray(Simulation.from_scene(scene).run(len(data) - 1).qpos)
+        ours, theirs = float(np.linalg.norm(q[-1, :2])), float(np.linalg.norm(data[-1, :2]))
+        dot = abs(float(q[-1, 3:7] @ data[-1, 3:7]))
+        print(f"  mu {mu}: travelled {ours:.2f} vs {theirs:.2f} m, at rest {q[-1, 2]:.4f} vs {data[-1, 2]:.4f} m "
+              f"high, orientation |q . q_ref| = {dot:.3f}")  # fmt: skip
 
 
 def mesh_push() -> None:
@@ -92,13 +111,14 @@ def soap(shared: Path, seeds: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("experiment", choices=["reference", "mesh-push", "soap"])
+    parser.add_argument("experiment", choices=["reference", "mesh-push", "soap", "drops"])
     parser.add_argument("--shared", type=Path, default=DEFAULT_SHARED, help="the shared/ folder (reference data)")
     parser.add_argument("--first", type=int, default=400, help="reference: first row (first bounce near 230)")
     parser.add_argument("--frames", type=int, default=501, help="reference: rows used")
     parser.add_argument("--window", type=int, default=25, help="reference: frames per shooting window")
-    parser.add_argument("--integrator", choices=["implicit", "explicit"], default="implicit", help="reference: step")
-    parser.add_argument("--substeps", type=int, help="reference: steps per 2 ms frame (default 1 implicit, 8 explicit)")
+    steps = ["implicit", "explicit"]
+    parser.add_argument("--integrator", choices=steps, default="implicit", help="reference, drops: step")
+    parser.add_argument("--substeps", type=int, help="steps per frame (reference: 1 implicit, 8 explicit; drops: 1)")
     parser.add_argument("--seeds", type=int, default=3, help="soap: noise seeds")
     args = parser.parse_args()
     if args.substeps is not None and args.substeps < 1:
@@ -107,6 +127,8 @@ def main() -> None:
         parser.error(f"reference data not found under {args.shared} (pass --shared)")
     if args.experiment == "reference":
         reference(args.shared, args.first, args.frames, args.window, args.substeps, args.integrator)
+    elif args.experiment == "drops":
+        drops(args.shared, args.substeps, args.integrator)
     elif args.experiment == "mesh-push":
         mesh_push()
     else:
