@@ -1,11 +1,15 @@
 """Simulation speed on this machine, side by side in one run.
 
-- steps/s of the bunny DANO (5000 points) resting on the ground: single rollout, vmapped 64 and
-  1024 environments, per-point and centroid force modes; JIT compile time apart;
-- the same scene in MuJoCo C with the bunny as a CoACD convex decomposition (the mesh path);
+- the bunny DANO (5000 points) at rest on the ground and sliding at 1 m/s, one env, on equal
+  simulated seconds: the implicit step (one 2 ms step per frame, the default) over each pair's
+  active set (the default) and over all points (`contact_budget` = all), beside MuJoCo C with the
+  bunny as a CoACD convex decomposition (the mesh path) at its default 2 ms step and at 0.5 ms;
+- batched: vmapped over 1, 64 and 256 environments (and sharded over every local device);
+- JIT compile of a 500-frame rollout, lowering and compiling apart;
 - a DANO-DANO step with the partner's density from its neural network vs from the baked grid.
 
-Run: `python bench/simulate.py`. A "step" is one MuJoCo step (a frame has `substeps` of them).
+Run: `python bench/simulate.py` (`--integrators`: explicit vs implicit on a flat box). Rates are
+simulated seconds per wall-clock second (medians of 5 runs); "ratio" divides by MuJoCo C's at 2 ms.
 """
 
 import time
@@ -21,26 +25,52 @@ from dano.baselines.mesh import convex_decomposition, mujoco_mesh_model
 from dano.demo import bunny_mesh
 from dano.fields import NeuralField, mesh_field
 from dano.sim import DanoBody, Scene
-from dano.sim.run import Simulation
+from dano.sim.run import Simulation, shard_batch
 from dano.sim.step import rollout
 
 
-def timed_rollout(sim: Simulation, frames: int, batch: int | None = None):
+def _median_seconds(fn, *args, repeats: int = 5) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def timed_rollout(sim: Simulation, frames: int, batch: int | None = None, repeats: int = 5):
+    """(steps per second, JIT seconds (lower + compile)) of `frames` frames, one env or `batch`
+    environments (vmapped, sharded over the local devices along the batch)."""
     d = sim.data
     if batch is None:
-        fn = eqx.filter_jit(lambda d: rollout(sim.world, sim.params, sim.mjx_model, d, frames).qpos[-1])
+        fn = jax.jit(lambda d: rollout(sim.world, sim.params, sim.mjx_model, d, frames).qpos[-1])
     else:
         d = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), d)
         d = d.replace(qvel=d.qvel.at[:, 0].set(jnp.linspace(0.0, 0.5, batch)))
-        fn = eqx.filter_jit(jax.vmap(lambda d: rollout(sim.world, sim.params, sim.mjx_model, d, frames).qpos[-1]))
+        d = shard_batch(d)
+        fn = jax.jit(jax.vmap(lambda d: rollout(sim.world, sim.params, sim.mjx_model, d, frames).qpos[-1]))
     t0 = time.perf_counter()
-    jax.block_until_ready(fn(d))
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(d))
-    run = time.perf_counter() - t0
+    compiled = fn.lower(d).compile()
+    compile_s = time.perf_counter() - t0
+    run = _median_seconds(compiled, d, repeats=repeats)
     steps = frames * sim.world.substeps * (batch or 1)
-    return steps / run, first - run
+    return steps / run, compile_s
+
+
+def mujoco_rate(model, vx: float = 0.0, steps: int = 4000) -> float:
+    """MuJoCo C steps per second (median of 5), from a settled state with velocity vx."""
+    data = mujoco.MjData(model)
+    for _ in range(int(0.5 / model.opt.timestep)):
+        mujoco.mj_step(model, data)
+    rates = []
+    for _ in range(5):
+        data.qvel[:] = 0.0
+        data.qvel[0] = vx
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            mujoco.mj_step(model, data)
+        rates.append(steps / (time.perf_counter() - t0))
+    return float(np.median(rates))
 
 
 def integrators() -> None:
@@ -80,25 +110,39 @@ def main() -> None:
     mesh = bunny_mesh()
     bunny = build_dano(mesh_field(mesh, resolution=80, progress=False), n_points=5000)
     lift = -float(np.min(np.asarray(bunny.body_points)[:, 2]))
-    rows = []
-    for mode in ("points", "centroid"):
-        sim = Simulation.from_scene(Scene(bodies=(DanoBody("bunny", bunny, pos=(0, 0, lift)),), force_mode=mode))
-        for batch, frames in ((None, 500), (64, 50), (1024, 5)):
-            rate, compile_s = timed_rollout(sim, frames, batch)
-            rows.append((f"DANO bunny, {mode}, {batch or 1} env", rate, compile_s))
-
     pieces = convex_decomposition(mesh.simplify_quadric_decimation(face_count=8000), threshold=0.08, max_hulls=16)
-    model = mujoco_mesh_model(pieces, float(bunny.mass), pos=(0, 0, 0.1), timestep=0.0005)
-    data = mujoco.MjData(model)
-    for _ in range(2000):
-        mujoco.mj_step(model, data)
-    t0 = time.perf_counter()
-    for _ in range(4000):
-        mujoco.mj_step(model, data)
-    c_rate = 4000 / (time.perf_counter() - t0)
-    rows.append((f"MuJoCo C, CoACD bunny ({len(pieces)} hulls)", c_rate, 0.0))
+    mj = {dt: mujoco_mesh_model(pieces, float(bunny.mass), pos=(0, 0, 0.1), timestep=dt) for dt in (0.002, 0.0005)}
+    print(f"{jax.device_count()} {jax.default_backend()} device(s); bunny DANO {bunny.n_points} points")
+
+    print(f"\n{'single env, equal simulated seconds':52}{'sim s / s':>12}{'ms / 2 ms':>12}{'JIT [s]':>9}{'ratio':>8}")
+    for label, vx in (("at rest", 0.0), ("sliding 1 m/s", 1.0)):
+        c_rate = mujoco_rate(mj[0.002], vx) * 0.002
+        rows = []
+        for name, budget in (("active set", None), ("all points", bunny.n_points)):
+            body = DanoBody("bunny", bunny, pos=(0, 0, lift), vel=(vx, 0, 0))
+            sim = Simulation.from_scene(Scene(bodies=(body,), contact_budget=budget))
+            rate, compile_s = timed_rollout(sim, 250)
+            seconds = rate * sim.scene.timestep / sim.world.substeps
+            rows.append((f"DANO implicit 2 ms, {name}, {label}", seconds, compile_s))
+        rows.append((f"MuJoCo C CoACD ({len(pieces)} hulls) 2 ms, {label}", c_rate, 0.0))
+        rows.append((f"MuJoCo C CoACD 0.5 ms, {label}", mujoco_rate(mj[0.0005], vx) * 0.0005, 0.0))
+        for name, rate, compile_s in rows:
+            print(f"{name:52}{rate:>12.2f}{2e3 / rate * 1e-3:>12.3f}{compile_s:>9.1f}{rate / c_rate:>8.3f}")
+
+    head = f"{'batched (vmap, sharded over the devices)':52}{'sim s / s':>12}{'per env':>12}"
+    print(f"\n{head}{'JIT [s]':>9}{'x 1 env':>8}")
+    body = DanoBody("bunny", bunny, pos=(0, 0, lift))
+    sim = Simulation.from_scene(Scene(bodies=(body,)))
+    single = None
+    for batch, frames in ((1, 100), (64, 20), (256, 10)):
+        rate, compile_s = timed_rollout(sim, frames, batch, repeats=3)
+        rate = rate * sim.scene.timestep / sim.world.substeps
+        single = single or rate
+        name = f"DANO bunny at rest, {batch} envs"
+        print(f"{name:52}{rate:>12.2f}{rate / batch:>12.3f}{compile_s:>9.1f}{rate / single:>8.2f}")
 
     # DANO-DANO: two bunnies touching; the partner's density from a network vs its baked grid.
+    print(f"\n{'two DANO bunnies touching':52}{'sim s / s':>12}{'JIT [s]':>9}")
     network = NeuralField(bunny.grid_bounds, key=jax.random.key(0))
     for label, field in (("baked grid", None), ("network 8x128", network)):
         bodies = (
@@ -106,12 +150,8 @@ def main() -> None:
             DanoBody("b", bunny, pos=(0.12, 0, lift), field=field),
         )
         sim = Simulation.from_scene(Scene(bodies=bodies))
-        rate, compile_s = timed_rollout(sim, 20)
-        rows.append((f"two DANO bunnies, {label}", rate, compile_s))
-
-    print(f"{'scene':44}{'steps/s':>14}{'JIT compile [s]':>18}{'ratio to MuJoCo C':>20}")
-    for name, rate, compile_s in rows:
-        print(f"{name:44}{rate:>14,.0f}{compile_s:>18.1f}{rate / c_rate:>20.2f}")
+        rate, compile_s = timed_rollout(sim, 20, repeats=3)
+        print(f"{label:52}{rate * sim.scene.timestep / sim.world.substeps:>12.3f}{compile_s:>9.1f}")
 
 
 if __name__ == "__main__":

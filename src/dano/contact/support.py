@@ -33,8 +33,10 @@ from dano.contact.wrench import ContactParams
 from dano.math import normalize
 
 MIN_GAIN = 1.0
-"""1/m: the floor of a point's depth gain (a point whose occupancy is flat there, saturated or
-outside, pushes with a force that hardly changes over the step; the floor keeps U well defined)."""
+"""1/m: a DANO-DANO point whose occupancy slope is below this (flat there: saturated, or outside
+the partner) has its force held at s0 over the step (gain 0), as the hard indicator's: over a step
+its depth changes by less than a micron's worth of the law, and a point outside the partner then
+exerts no force at all, so the active set (`dano.contact.active`) can leave it out."""
 
 
 class Support(eqx.Module):
@@ -85,19 +87,20 @@ def primitive_support(shape: Primitive, body: Body, a: Frame, delta) -> Support:
 def dano_support(A: Body, B: Body, a: Frame, b: Frame) -> Support:
     """DANO A against DANO B (eqs. 9-10): A's points in B's occupancy and B's in A's, all pushing A
     along one normal (from B towards A; as in `dano.contact.pairs.dano_points`). A point's gain is its
-    occupancy's slope as the bodies approach along that normal."""
+    occupancy's slope as the bodies approach along that normal (0, held, below `MIN_GAIN`)."""
     PA, PB = world_points(A, a), world_points(B, b)
     occ_b, occ_a = occupancy(B, b, PA), occupancy(A, a, PB)
     n = normalize((b.R @ B.normals) @ (B.weights * occ_a) - (a.R @ A.normals) @ (A.weights * occ_b))
     # A moving along -n goes into B; B's points then move along +n relative to A.
     slope_a = jax.jvp(lambda P: occupancy(B, b, P), (PA,), (jnp.broadcast_to(-n[:, None], PA.shape),))[1]
     slope_b = jax.jvp(lambda P: occupancy(A, a, P), (PB,), (jnp.broadcast_to(n[:, None], PB.shape),))[1]
+    slope = jnp.concatenate([slope_a, slope_b])
     return Support(
         jnp.concatenate([PA, PB], axis=1),
         n[:, None],
         jnp.concatenate([A.weights, B.weights]),
         jnp.concatenate([occ_b, occ_a]),
-        jnp.maximum(jnp.concatenate([slope_a, slope_b]), MIN_GAIN),
+        jnp.where(slope >= MIN_GAIN, slope, 0.0),
         False,
     )
 

@@ -28,11 +28,13 @@ bodies (free and actuated primitives, robot links) are the same forces with oppo
 through `xfrc_applied` before `mjx.step` moves them; a DANO-DANO pair is solved jointly (12 x 12).
 """
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 from mujoco import mjx
 
+from dano.contact import active
 from dano.contact.friction import Patch, patch_terms
 from dano.contact.pairs import Frame, near
 from dano.contact.pairs import reaction as reaction_of
@@ -70,10 +72,9 @@ def _block_diag(blocks: list[Array]) -> Array:
     return out
 
 
-def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array, ""]) -> Float[Array, " n"]:
+def newton(objective, x0: Float[Array, " n"], tol: float | Float[Array, ""]) -> Float[Array, " n"]:
     """argmin of a smooth strongly convex function by Newton's method with a line search along
-    each Newton direction, differentiable through the optimality condition grad f(x*) = 0
-    (`lax.custom_root`), not through the iterations.
+    each Newton direction (not differentiable: see `minimize_convex`).
 
     The line search finds where the directional derivative phi'(t) = grad f(x + t dx) . dx changes
     sign (bracketed regula falsi), not a sufficient decrease by halving: Coulomb friction at a
@@ -88,57 +89,78 @@ def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array,
         tol: stop when the Newton decrement -grad . dx (units of the value) is below this.
     """
 
-    def solve(_, x):
-        def newton(state):
-            k, x, _ = state
-            f0, g, H = objective(x)
-            dx = -jnp.linalg.solve(H, g)
-            slope = g @ dx  # phi'(0) < 0
-            # Converged: the decrement is below tol, or below what rounding lets the value resolve.
-            small = -slope < tol + 64 * jnp.finfo(x.dtype).eps * jnp.abs(f0)
+    def step(state):
+        k, x, _ = state
+        f0, g, H = objective(x)
+        dx = -jnp.linalg.solve(H, g)
+        slope = g @ dx  # phi'(0) < 0
+        # Converged: the decrement is below tol, or below what rounding lets the value resolve.
+        small = -slope < tol + 64 * jnp.finfo(x.dtype).eps * jnp.abs(f0)
 
-            def dphi(t):
-                return objective(x + t * dx)[1] @ dx
+        def dphi(t):
+            return objective(x + t * dx)[1] @ dx
 
-            def searching(c):
-                i, _, _, _, _, t, d, _ = c
-                # phi is convex: d <= 0 at t = 1 means it falls all the way (the full Newton step).
-                found = (d <= 0.0) & (t >= 1.0) | (jnp.abs(d) <= SEARCH_TOLERANCE * -slope)
-                return ~small & ~found & (i < SEARCH_ITERATIONS)
+        def searching(c):
+            i, _, _, _, _, t, d, _ = c
+            # phi is convex: d <= 0 at t = 1 means it falls all the way (the full Newton step).
+            found = (d <= 0.0) & (t >= 1.0) | (jnp.abs(d) <= SEARCH_TOLERANCE * -slope)
+            return ~small & ~found & (i < SEARCH_ITERATIONS)
 
-            def narrow(c):
-                i, lo, d_lo, hi, d_hi, t, d, side = c
-                below = d < 0.0
-                lo, d_lo = jnp.where(below, t, lo), jnp.where(below, d, d_lo)
-                hi, d_hi = jnp.where(below, hi, t), jnp.where(below, d_hi, d)
-                # Illinois: an end kept twice in a row counts half, so the bracket shrinks from both.
-                d_lo = jnp.where(below & (side == 1), d_lo, jnp.where(~below & (side == -1), 0.5 * d_lo, d_lo))
-                d_hi = jnp.where(~below & (side == -1), d_hi, jnp.where(below & (side == 1), 0.5 * d_hi, d_hi))
-                t = lo - d_lo * (hi - lo) / (d_hi - d_lo)
-                t = jnp.clip(t, lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo))
-                return i + 1, lo, d_lo, hi, d_hi, t, dphi(t), jnp.where(below, 1, -1)
+        def narrow(c):
+            i, lo, d_lo, hi, d_hi, t, d, side = c
+            below = d < 0.0
+            lo, d_lo = jnp.where(below, t, lo), jnp.where(below, d, d_lo)
+            hi, d_hi = jnp.where(below, hi, t), jnp.where(below, d_hi, d)
+            # Illinois: an end kept twice in a row counts half, so the bracket shrinks from both.
+            d_lo = jnp.where(below & (side == 1), d_lo, jnp.where(~below & (side == -1), 0.5 * d_lo, d_lo))
+            d_hi = jnp.where(~below & (side == -1), d_hi, jnp.where(below & (side == 1), 0.5 * d_hi, d_hi))
+            t = lo - d_lo * (hi - lo) / (d_hi - d_lo)
+            t = jnp.clip(t, lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo))
+            return i + 1, lo, d_lo, hi, d_hi, t, dphi(t), jnp.where(below, 1, -1)
 
-            one, zero = jnp.ones((), x.dtype), jnp.zeros((), x.dtype)
-            d1 = jnp.where(small, zero, dphi(one))
-            c = (0, zero, slope, one, d1, one, d1, 0)
-            i, lo, _, _, _, t, d, _ = jax.lax.while_loop(searching, narrow, c)
-            # Not found within the budget on the rising side: the bracket's low end, where phi
-            # still falls, is a guaranteed decrease (none at all if that end is still 0: stuck).
-            ok = (d <= 0.0) | (jnp.abs(d) <= SEARCH_TOLERANCE * -slope)
-            t = jnp.where(ok, t, lo)
-            stuck = ~small & (t <= 0.0)
-            return k + 1, jnp.where(stuck, x, x + t * dx), small | stuck
+        one, zero = jnp.ones((), x.dtype), jnp.zeros((), x.dtype)
+        d1 = jnp.where(small, zero, dphi(one))
+        c = (0, zero, slope, one, d1, one, d1, 0)
+        i, lo, _, _, _, t, d, _ = jax.lax.while_loop(searching, narrow, c)
+        # Not found within the budget on the rising side: the bracket's low end, where phi
+        # still falls, is a guaranteed decrease (none at all if that end is still 0: stuck).
+        ok = (d <= 0.0) | (jnp.abs(d) <= SEARCH_TOLERANCE * -slope)
+        t = jnp.where(ok, t, lo)
+        stuck = ~small & (t <= 0.0)
+        return k + 1, jnp.where(stuck, x, x + t * dx), small | stuck
 
-        def going(state):
-            k, _, done = state
-            return (k < NEWTON_ITERATIONS) & ~done
+    def going(state):
+        k, _, done = state
+        return (k < NEWTON_ITERATIONS) & ~done
 
-        return jax.lax.while_loop(going, newton, (0, x, False))[1]
+    return jax.lax.while_loop(going, step, (0, x0, False))[1]
 
-    def tangent_solve(g, y):
-        return jnp.linalg.solve(jax.jacobian(g)(y), y)
 
-    return jax.lax.custom_root(lambda x: objective(x)[1], x0, solve, tangent_solve)
+def _tangent_solve(g, y):
+    return jnp.linalg.solve(jax.jacobian(g)(y), y)
+
+
+def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array, ""]) -> Float[Array, " n"]:
+    """`newton`, differentiable through the optimality condition grad f(x*) = 0 (`lax.custom_root`),
+    not through the iterations."""
+    return jax.lax.custom_root(lambda x: objective(x)[1], x0, lambda _, x: newton(objective, x, tol), _tangent_solve)
+
+
+def run_if(pred: Bool[Array, ""], fn, x):
+    """fn(x) where pred, else x: a loop that runs once or not at all, so under `vmap` fn runs only
+    when some element needs it (a `lax.cond` there would run it always). Not reverse-differentiable;
+    use it in a `custom_root` solve."""
+    return jax.lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros_like(c[0]), fn(c[1])), (pred, x))[1]
+
+
+class _Sets(eqx.Module):
+    """Each pair's support and patch, the damper's lagged overlaps and the normal velocities at V~:
+    all the points, or their active sets."""
+
+    supports: tuple
+    patches: tuple
+    psi0: tuple
+    u_n0: tuple
 
 
 def friction_normal(N: Float[Array, " k"]) -> Float[Array, " k"]:
@@ -249,53 +271,109 @@ def implicit_step(
         return jnp.zeros(6 * n).at[idx].add(g), jnp.zeros((6 * n, 6 * n)).at[idx[:, None], idx[None, :]].add(H)
 
     centroid = world.force_mode == "centroid"  # friction and damper at chi (the spring per point)
-    u_n0 = [normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(patches)]
 
-    # The damper's overlaps, lagged: at the pose the free motion reaches.
-    psi0 = [overlap(sup, sup.s0) for sup in supports]
+    def point_sets(sups, pts) -> _Sets:
+        u_n0 = tuple(normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(pts))
+        # The damper's overlaps, lagged: at the pose the free motion reaches.
+        return _Sets(tuple(sups), tuple(pts), tuple(overlap(sup, sup.s0) for sup in sups), u_n0)
 
-    def with_friction(V):
-        """Each pair's friction patch at the normal forces delivered at the velocities V."""
+    def with_friction(sets: _Sets, V, on):
+        """Each pair's friction patch at the normal forces delivered at the velocities V, times
+        `on` (0: no friction, 1)."""
         out = []
-        for j, (p, sup, pt) in enumerate(zip(params.contact, supports, patches, strict=True)):
-            _, _, _, s, u_n = normal_terms(p, sup, pt, psi0[j], u_n0[j], h, pair_velocity(j, V), centroid)
-            N = friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * psi0[j] * u_n)
+        for j, (p, sup, pt) in enumerate(zip(params.contact, sets.supports, sets.patches, strict=True)):
+            _, _, _, s, u_n = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], h, pair_velocity(j, V), centroid)
+            N = on * friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * sets.psi0[j] * u_n)
             fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
             out.append(_centroid(fr, N) if centroid else fr)
         return out
 
-    def pair_terms(j, friction, V):
-        """Pair j's U + h R (+ h D with the friction patches, a list, or None) at V, with its
+    def pair_terms(sets: _Sets, j, friction, V):
+        """Pair j's U + h R + h D (D with the friction patches, a list) at V, with its
         gradient and Hessian w.r.t. the pair's velocity vector."""
         Vj = pair_velocity(j, V)
-        value, g, H, _, _ = normal_terms(params.contact[j], supports[j], patches[j], psi0[j], u_n0[j], h, Vj, centroid)
-        if friction is None:
-            return value, g, H
-        fv, fg, fH = patch_terms(params.contact[j], friction[j], Vj)
+        p = params.contact[j]
+        sup, pt = sets.supports[j], sets.patches[j]
+        value, g, H, _, _ = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], h, Vj, centroid)
+        fv, fg, fH = patch_terms(p, friction[j], Vj)
         return value + h * fv, g + h * fg, H + h * fH
 
-    def objective(friction):
+    def objective(sets: _Sets, friction):
         def f(V):
             e = V - V_free
             value, g, H = 0.5 * e @ M @ e, M @ e, M
             for j in range(len(pair_list)):
-                vj, gj, Hj = pair_terms(j, friction, V)
+                vj, gj, Hj = pair_terms(sets, j, friction, V)
                 gj, Hj = scatter_pair(j, gj, Hj)
                 value, g, H = value + vj, g + gj, H + Hj
             return value, g, H
 
         return f
 
+    full = point_sets(supports, patches)
+    # The active set of each pair (`dano.contact.active`), where its budget is below its points.
+    budgets = [
+        world.danos[i].budget + (world.danos[mate.dano].budget if mate.dano >= 0 else 0)
+        for (i, _, _), mate in zip(pair_list, mates, strict=True)
+    ]
+    actives = [
+        active.choose(sup, k) if 0 < k < sup.s0.shape[0] else None for sup, k in zip(supports, budgets, strict=True)
+    ]
+    triples = list(zip(supports, patches, actives, strict=True))
+    taken = [active.take(sup, pt, a) if a is not None else (sup, pt) for sup, pt, a in triples]
+    sparse = point_sets([t[0] for t in taken], [t[1] for t in taken])
+    drops = [active.dropped(sup, pt, a) if a is not None else None for sup, pt, a in triples]
+    started_over = jnp.any(jnp.asarray([a.overflow for a in actives if a is not None] or [False]))
+
+    def missed(V) -> Array:
+        """Whether a point that the active sets dropped is live at V (`dano.contact.active`)."""
+        out = started_over
+        for j, a in enumerate(actives):
+            if a is None:
+                continue
+            dV = pair_velocity(j, V) - pair_velocity(j, V_free)
+            exact = lambda j=j, a=a: active.missed(supports[j], patches[j], a, full.u_n0[j], pair_velocity(j, V), h)  # noqa: E731
+            safe = active.bound_holds(supports[j], drops[j], dV, h)
+            out = out | jax.lax.cond(safe, lambda: False, exact)
+        return out
+
     total_mass = sum(b.mass for b in bodies)
+    tol = 1e-20 * total_mass
     # The first friction solve starts from the velocities the step starts with, not from the
     # frictionless answer: a body that friction holds is near them, while without friction it
     # may slip and turn (a resting box: 1.5 mm/s at its face, far out on the Coulomb law's flat
     # part, where Newton needs ~20 damped steps to come back instead of ~4).
     V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in frames])
-    V_next, friction = V_free, None
-    for k in range(PASSES if pair_list else 0):
-        friction = with_friction(V_next) if k else None
-        V_next = minimize_convex(objective(friction), V_now if k == 1 else V_next, 1e-20 * total_mass)
+    sparse_step = any(a is not None for a in actives)
+
+    def one_pass(carry, k):
+        """Solve k: friction at the normal forces of solve k - 1 (none in the first, `PASSES`), over
+        the active sets, or over all points once a dropped point turns out live (`missed`)."""
+        V_before, over = carry
+        x0 = jnp.where(k == 1, V_now, V_before)
+        on = (k > 0).astype(V_before.dtype)
+        if not sparse_step:
+            return (minimize_convex(objective(full, with_friction(full, V_before, on)), x0, tol), over), V_before
+        small = objective(sparse, with_friction(sparse, V_before, on))
+        trial = newton(small, jax.lax.stop_gradient(x0), tol)
+        over = over | missed(trial)  # once over, the rest of the step is dense: its friction needs all points
+
+        def dense():
+            return objective(full, with_friction(full, V_before, on))
+
+        def optimality(V):
+            return jax.lax.cond(over, lambda V: dense()(V)[1], lambda V: small(V)[1], V)
+
+        def solve(_, x):
+            return run_if(over, lambda x: newton(dense(), x, tol), x)
+
+        return (jax.lax.custom_root(optimality, trial, solve, _tangent_solve), over), V_before
+
+    V_next, over, V_before = V_free, jnp.zeros((), bool), V_free
+    if pair_list:  # one traced pass, run PASSES times (the passes differ only in their data)
+        (V_next, over), befores = jax.lax.scan(one_pass, (V_free, over), jnp.arange(PASSES))
+        V_before = befores[-1]
+    last_on = jnp.asarray(float(PASSES > 1), V_next.dtype)
 
     # Reactions on MuJoCo bodies (the pair's force on the DANO is -dT/dV_a / h); DANOs are
     # integrated here.
@@ -306,7 +384,15 @@ def implicit_step(
     for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
         if mate.body < 0:
             continue
-        wrench = -pair_terms(j, friction, V_next)[1][:6] / h
+        if sparse_step:  # solved over the active sets, or over all points if they overflowed
+
+            def grad_of(sets, j=j):
+                return pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
+
+            g = jax.lax.cond(over, lambda: grad_of(full), lambda: grad_of(sparse))
+        else:
+            g = pair_terms(full, j, with_friction(full, V_before, last_on), V_next)[1]
+        wrench = -g[:6] / h
         centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
         xfrc = scatter(xfrc, mate.body, reaction_of(wrench, frames[i].x, centre))
     d = mjx_step(m, d.replace(xfrc_applied=xfrc))
@@ -318,4 +404,7 @@ def implicit_step(
         q1, w_body = _rotate(quats[i], f.R, b.inertia, inertia_w[i] @ V_next[i, 3:], h)
         qpos = qpos.at[a : a + 3].set(f.x + h * V_next[i, :3]).at[a + 3 : a + 7].set(q1)
         qvel = qvel.at[v : v + 3].set(V_next[i, :3]).at[v + 3 : v + 6].set(w_body)
-    return d.replace(qpos=qpos, qvel=qvel)
+    d = d.replace(qpos=qpos, qvel=qvel)
+    if world.fallback_slot >= 0:
+        d = d.replace(userdata=d.userdata.at[world.fallback_slot].add(over.astype(d.userdata.dtype)))
+    return d

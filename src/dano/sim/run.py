@@ -10,6 +10,7 @@ with, and names the frame, the body, its contacts' penetration and the time step
 
 import csv
 import dataclasses
+import warnings
 from pathlib import Path
 
 import jax
@@ -79,7 +80,66 @@ class Simulation:
         if ctrl is None and mocap_pos is None and external is None:
             audit_energy(traj, self, params)  # first: the energy grows before the state blows up
         check_trajectory(traj, self.scene)
+        _warn_fallbacks(traj, self.world)
         return traj
+
+    def run_batch(self, data: mjx.Data, n_frames: int | None = None, params=None) -> Trajectory:
+        """Rolls out a batch of states (`data` with a leading batch axis on every leaf, e.g. from
+        `batch_data`), vmapped and sharded over all local devices (`shard_batch`); checks every
+        environment as `run` does (no energy audit). Returns the batched `Trajectory`."""
+        n = self.scene.n_steps if n_frames is None else n_frames
+        key = ("batch", n)
+        if key not in self._compiled:
+
+            def go(params, d):
+                return jax.vmap(lambda d: rollout(self.world, params, self.mjx_model, d, n))(d)
+
+            self._compiled[key] = jax.jit(go, compiler_options=compiler_options(self.world))
+        traj = self._compiled[key](self.params if params is None else params, shard_batch(data))
+        for i in range(traj.qpos.shape[0]):
+            check_trajectory(jax.tree_util.tree_map(lambda x, i=i: x[i], traj), self.scene)
+        _warn_fallbacks(traj, self.world)
+        return traj
+
+    def batch_data(self, size: int) -> mjx.Data:
+        """`size` copies of the initial state, with a leading batch axis (set qpos, qvel per env)."""
+        return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (size, *jnp.shape(x))), self.data)
+
+
+def shard_batch(tree):
+    """Places a batch (the leading axis of every array leaf) across all local devices with
+    `jax.sharding`, so that a jitted, vmapped computation on it runs on each device's share; on
+    one device, or for a batch of 1, it is returned as is. Raises `SimulationError` when the batch
+    does not divide evenly over the devices."""
+    devices = jax.local_devices()
+    leaves = [x for x in jax.tree_util.tree_leaves(tree) if jnp.ndim(x) > 0]
+    size = leaves[0].shape[0] if leaves else 1
+    if len(devices) == 1 or size == 1:
+        return tree
+    if size % len(devices):
+        raise SimulationError(f"a batch of {size} does not divide over {len(devices)} devices: use a multiple")
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
+    batched = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    return jax.tree_util.tree_map(lambda x: jax.device_put(x, batched) if jnp.ndim(x) > 0 else x, tree)
+
+
+def _warn_fallbacks(traj: Trajectory, world) -> None:
+    """Says when contact active sets overflowed (exact, but at the cost of all points)."""
+    if traj.fallbacks is None:
+        return
+    count = int(np.max(np.asarray(traj.fallbacks)[..., -1]))
+    if count:
+        budgets = ", ".join(f"{name} {s.budget}" for name, s in zip(world.names, world.danos, strict=True))
+        warnings.warn(
+            f"{count} step(s) needed more contact points than the active set holds ({budgets} points per "
+            "pair) and were solved over all points: exact, but slower; raise Scene(contact_budget=...)",
+            ContactBudgetWarning,
+            stacklevel=3,
+        )
+
+
+class ContactBudgetWarning(UserWarning):
+    """Steps whose contact active sets overflowed were solved over all points (`dano.contact.active`)."""
 
 
 def compiler_options(world) -> dict | None:

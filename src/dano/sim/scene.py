@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano.contact import ContactParams
+from dano.contact import ContactParams, active
 from dano.errors import DanoError
 from dano.types import DANO
 
@@ -195,6 +195,10 @@ class Scene:
             that sticks; `dano.sim.implicit`); "explicit" applies the wrench at the current state
             (the paper's scheme: needs ~0.5 ms steps, `substeps=4`; free flight reproduces the
             paper authors' stored trajectories, `dano.reference`).
+        contact_budget: points of each DANO per contact pair that the implicit step solves over
+            (`dano.contact.active`): None (default) from each DANO's geometry (the most points
+            near a supporting plane, `dano.contact.active.budget`); a step whose pairs need more
+            is solved over all points, exactly, and counted (`Trajectory.fallbacks`).
     """
 
     timestep: Number = 0.002
@@ -210,6 +214,7 @@ class Scene:
     force_mode: Literal["points", "centroid"] = "points"
     robot: Robot | None = None
     integrator: Literal["implicit", "explicit"] = "implicit"
+    contact_budget: int | None = None
 
     def __post_init__(self):
         if self.substeps is None and self.integrator in DEFAULT_SUBSTEPS:
@@ -241,6 +246,8 @@ class DanoState(eqx.Module):
     com: Float[Array, " 3"]
     field: object
     peak: Float[Array, ""]
+    budget: int = eqx.field(static=True, default=0)
+    """points per contact pair that the implicit step solves over (`dano.contact.active`); 0: all."""
 
 
 class LinkGeom(eqx.Module):
@@ -285,6 +292,8 @@ class World(eqx.Module):
     dt: float = eqx.field(static=True)
     force_mode: str = eqx.field(static=True)
     integrator: str = eqx.field(static=True, default="implicit")
+    fallback_slot: int = eqx.field(static=True, default=-1)
+    """`mjx.Data.userdata` slot counting the steps whose active sets overflowed (-1: none)."""
 
 
 class Params(eqx.Module):
@@ -406,6 +415,16 @@ def _mj_size(p: Primitive) -> list[float]:
     return list(p.size) + [0.0] * (3 - len(p.size))
 
 
+def _budget(scene: Scene, body: DanoBody) -> int:
+    n = body.dano.n_points
+    k = scene.contact_budget
+    if k is not None and (isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1):
+        raise SceneError(f"contact_budget must be a whole number of points >= 1 or None, got {k!r}")
+    if k is None:
+        k = active.budget(np.asarray(body.dano.body_points).T, np.asarray(body.dano.normals).T)
+    return min(int(k), n)
+
+
 def compile_scene(scene: Scene):
     """Builds the MuJoCo model and the `World`, `Params` and initial `qpos`/`qvel` of a scene.
 
@@ -432,6 +451,7 @@ def compile_scene(scene: Scene):
         # at one 2 ms step per frame Euler's explicit damping rings up on a light joint.
         spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     _add_visuals(spec)
+    spec.nuserdata += 1  # the last slot counts the steps whose contact active sets overflowed
     if scene.ground_height is not None:
         n = np.asarray(_unit(scene.ground_normal))
         quat = np.zeros(4)
@@ -468,6 +488,7 @@ def compile_scene(scene: Scene):
             field=_contact_field(b),
             peak=jnp.asarray(b.dano.peak if b.dano.peak is not None else jnp.max(b.dano.densities)),
             normals=jnp.asarray(b.dano.normals.T),
+            budget=_budget(scene, b),
         )
         for b in scene.bodies
     )
@@ -498,6 +519,7 @@ def compile_scene(scene: Scene):
         dt=scene.timestep / scene.substeps,
         force_mode=scene.force_mode,
         integrator=scene.integrator,
+        fallback_slot=model.nuserdata - 1,
     )
     overrides = dict(scene.pair_contact)
     params = Params(
@@ -624,7 +646,7 @@ def _set_free(model, qpos, qvel, a, v, pos, quat, vel, angvel) -> None:
     qvel[v + 3 : v + 6] = R.reshape(3, 3).T @ np.asarray(angvel, dtype=float)  # MuJoCo: body frame
 
 
-_SIM_KEYS = {"timestep", "duration", "gravity", "substeps", "force_mode", "integrator"}
+_SIM_KEYS = {"timestep", "duration", "gravity", "substeps", "force_mode", "integrator", "contact_budget"}
 _BODY_KEYS = {"name", "dano", "pos", "quat", "vel", "angvel", "mass"}
 _PRIM_KEYS = {"name", "type", "size", "pos", "quat", "mode", "mass", "vel", "angvel"}
 _CONTACT_KEYS = {f.name for f in dataclasses.fields(ContactParams)}
@@ -710,6 +732,7 @@ def load_scene(path) -> Scene:
         pair_contact=tuple(pair_contact),
         force_mode=sim.get("force_mode", default.force_mode),
         integrator=integrator,
+        contact_budget=sim.get("contact_budget", default.contact_budget),
     )
 
 

@@ -309,10 +309,13 @@ def step(
 
 
 class Trajectory(eqx.Module):
-    """qpos (T+1, nq) and qvel (T+1, nv) at every frame, the initial state first."""
+    """qpos (T+1, nq) and qvel (T+1, nv) at every frame, the initial state first; `fallbacks`
+    (T+1,): how many steps so far had a contact active set overflow and were solved over all
+    points (`dano.contact.active`; exact, at the dense cost), or None."""
 
     qpos: Float[Array, "t nq"]
     qvel: Float[Array, "t nv"]
+    fallbacks: Float[Array, " t"] | None = None
 
 
 def rollout(
@@ -344,9 +347,15 @@ def rollout(
         if c is not None:
             d = d.replace(ctrl=c)
         d = step(world, params, m, d, mp, ext)
-        return d, (d.qpos, d.qvel)
+        return d, (d.qpos, d.qvel, fallbacks(world, d))
 
     if checkpoint:
         frame = jax.checkpoint(frame)
-    _, (qpos, qvel) = jax.lax.scan(frame, d, (ctrl, mocap_pos, external), length=n_frames)
-    return Trajectory(jnp.concatenate([d.qpos[None], qpos]), jnp.concatenate([d.qvel[None], qvel]))
+    _, (qpos, qvel, fell) = jax.lax.scan(frame, d, (ctrl, mocap_pos, external), length=n_frames)
+    fell = None if fell is None else jnp.concatenate([fallbacks(world, d)[None], fell])
+    return Trajectory(jnp.concatenate([d.qpos[None], qpos]), jnp.concatenate([d.qvel[None], qvel]), fell)
+
+
+def fallbacks(world: World, d: mjx.Data) -> Float[Array, ""] | None:
+    """The steps so far whose contact active sets overflowed (counted in `d.userdata`), or None."""
+    return d.userdata[world.fallback_slot] if world.fallback_slot >= 0 else None
