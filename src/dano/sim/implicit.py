@@ -197,9 +197,15 @@ def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame) -> Suppo
     fn = lambda: primitive_support(mate.shape, bodies[i], a, p.indicator_width)  # noqa: E731
     if not mate.radius:
         return fn()
-    shapes = jax.eval_shape(fn)
-    zeros = lambda: jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)  # noqa: E731
-    return jax.lax.cond(near(bodies[i], a, b.x, mate.radius), fn, zeros)
+    def far() -> Support:
+        """No point can touch: weightless, held (gain 0) and outside the law's support (s0 = -2), so
+        the active set counts none of them as live."""
+        sup = jax.eval_shape(fn)
+        zero = lambda x: jnp.zeros(x.shape, x.dtype)  # noqa: E731
+        s0 = jnp.full(sup.s0.shape, -2.0, sup.s0.dtype)
+        return Support(zero(sup.at), zero(sup.normal), zero(sup.weight), s0, zero(sup.gain), sup.smooth)
+
+    return jax.lax.cond(near(bodies[i], a, b.x, mate.radius), fn, far)
 
 
 def _centroid(patch: Patch, psi: Array) -> Patch:
