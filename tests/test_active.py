@@ -133,3 +133,19 @@ def test_budget_holds_a_flat_face_and_a_round_body_needs_few():
         assert face <= k <= box.n_points
     ball = dano.build_dano(dano.fields.SphereField(0.05), n_points=2000, log2_samples=12, grid_resolution=0)
     assert active.budget(np.asarray(ball.body_points).T, np.asarray(ball.normals).T) <= 0.05 * ball.n_points
+
+
+def test_frequent_overflow_is_said_and_a_rare_one_only_counted(boxes):
+    """`Simulation.run` warns (`ContactBudgetWarning`) when more than `FALLBACK_SHARE` of the steps
+    fell back to all points: a box resting on its face with a budget of 8 points overflows every
+    step; at its own budget none does, and no warning is raised."""
+    from dano.sim.run import ContactBudgetWarning
+
+    body = DanoBody("box", boxes, pos=(0, 0, -_lowest(boxes) - 2e-4))
+    small = Simulation.from_scene(Scene(bodies=(body,), contact_budget=8))
+    with pytest.warns(ContactBudgetWarning, match="20 of 20 steps"):
+        traj = small.run(20)
+    assert float(traj.fallbacks[-1]) == 20
+    own = Simulation.from_scene(Scene(bodies=(body,))).run(20)  # the suite turns warnings into errors
+    assert float(own.fallbacks[-1]) == 0
+    np.testing.assert_allclose(own.qpos, traj.qpos, rtol=0, atol=1e-10)

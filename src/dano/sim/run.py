@@ -123,16 +123,23 @@ def shard_batch(tree):
     return jax.tree_util.tree_map(lambda x: jax.device_put(x, batched) if jnp.ndim(x) > 0 else x, tree)
 
 
+FALLBACK_SHARE = 0.02
+"""`ContactBudgetWarning` is raised when more than this share of a rollout's steps overflowed their
+active sets; a rarer overflow (a hard impact's one step) costs little and is only counted."""
+
+
 def _warn_fallbacks(traj: Trajectory, world) -> None:
-    """Says when contact active sets overflowed (exact, but at the cost of all points)."""
+    """Says when contact active sets overflowed often (exact, but at the cost of all points): more
+    than `FALLBACK_SHARE` of the steps. `Trajectory.fallbacks` counts every one."""
     if traj.fallbacks is None:
         return
     count = int(np.max(np.asarray(traj.fallbacks)[..., -1]))
-    if count:
+    steps = (np.shape(traj.fallbacks)[-1] - 1) * world.substeps
+    if count > FALLBACK_SHARE * steps:
         budgets = ", ".join(f"{name} {s.budget}" for name, s in zip(world.names, world.danos, strict=True))
         warnings.warn(
-            f"{count} step(s) needed more contact points than the active set holds ({budgets} points per "
-            "pair) and were solved over all points: exact, but slower; raise Scene(contact_budget=...)",
+            f"{count} of {steps} steps needed more contact points than the active set holds ({budgets} points "
+            "per pair) and were solved over all points: exact, but slower; raise Scene(contact_budget=...)",
             ContactBudgetWarning,
             stacklevel=3,
         )
