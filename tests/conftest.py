@@ -7,6 +7,9 @@ import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+# The command line's persistent compilation cache (`dano.cli.compilation_cache`) stays off in the
+# tests that call `dano.cli.main`: each test compiles what it runs, whatever ran before.
+os.environ["DANO_COMPILATION_CACHE"] = "off"
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 

@@ -189,6 +189,13 @@ def _rotate(q: Float[Array, " 4"], R: Array, inertia: Array, L: Array, h: float)
     return q1, jnp.linalg.solve(inertia, R1.T @ L)
 
 
+def mujoco_moves(world: World, m: mjx.Model) -> bool:
+    """Whether `mjx.step` moves anything the implicit step does not: degrees of freedom besides the
+    DANOs' free joints (free or actuated primitives, a robot) or actuators. Where it does not (DANOs
+    among static geometry and mocap bodies, which the step places itself), the step skips it."""
+    return m.nv > 6 * len(world.danos) or m.nu > 0
+
+
 def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame) -> Support:
     """Pair i's support at the predicted frames (a: the DANO's; b: a DANO partner's predicted frame,
     else the partner's current one), broad phase included."""
@@ -197,6 +204,7 @@ def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame) -> Suppo
     fn = lambda: primitive_support(mate.shape, bodies[i], a, p.indicator_width)  # noqa: E731
     if not mate.radius:
         return fn()
+
     def far() -> Support:
         """No point can touch: weightless, held (gain 0) and outside the law's support (s0 = -2), so
         the active set counts none of them as live."""
@@ -375,33 +383,48 @@ def implicit_step(
 
         return (jax.lax.custom_root(optimality, trial, solve, _tangent_solve), over), V_before
 
-    V_next, over, V_before = V_free, jnp.zeros((), bool), V_free
-    if pair_list:  # one traced pass, run PASSES times (the passes differ only in their data)
-        (V_next, over), befores = jax.lax.scan(one_pass, (V_free, over), jnp.arange(PASSES))
-        V_before = befores[-1]
-    last_on = jnp.asarray(float(PASSES > 1), V_next.dtype)
+    last_on = jnp.asarray(float(PASSES > 1), V_free.dtype)
 
-    # Reactions on MuJoCo bodies (the pair's force on the DANO is -dT/dV_a / h); DANOs are
-    # integrated here.
-    xfrc = jnp.zeros_like(d.xfrc_applied)
+    def reactions(V_next, V_before, over):
+        """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (the pair's force on the DANO
+        is -dT/dV_a / h)."""
+        xfrc = jnp.zeros_like(d.xfrc_applied)
+        for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
+            if mate.body < 0:
+                continue
+            if sparse_step:  # solved over the active sets, or over all points if they overflowed
+
+                def grad_of(sets, j=j):
+                    return pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
+
+                g = jax.lax.cond(over, lambda: grad_of(full), lambda: grad_of(sparse))
+            else:
+                g = pair_terms(full, j, with_friction(full, V_before, last_on), V_next)[1]
+            centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
+            xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / h, frames[i].x, centre))
+        return xfrc
+
+    def solved():
+        """The passes (one traced pass, run PASSES times: they differ only in their data)."""
+        (V_next, over), befores = jax.lax.scan(one_pass, (V_free, jnp.zeros((), bool)), jnp.arange(PASSES))
+        return V_next, over, reactions(V_next, befores[-1], over)
+
+    def untouched():
+        """No point of any pair is live where the free motion goes: V~ is the minimiser (every
+        contact term is flat there), no check and no reaction."""
+        return V_free, jnp.zeros((), bool), jnp.zeros_like(d.xfrc_applied)
+
+    V_next, over, xfrc = untouched()
+    if pair_list:
+        touching = jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in supports]))
+        V_next, over, xfrc = jax.lax.cond(touching, solved, untouched)
     if external is not None:
         keep = jnp.ones(xfrc.shape[0]).at[jnp.asarray(world.dano_body)].set(0.0)
-        xfrc = external * keep[:, None]
-    for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
-        if mate.body < 0:
-            continue
-        if sparse_step:  # solved over the active sets, or over all points if they overflowed
-
-            def grad_of(sets, j=j):
-                return pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
-
-            g = jax.lax.cond(over, lambda: grad_of(full), lambda: grad_of(sparse))
-        else:
-            g = pair_terms(full, j, with_friction(full, V_before, last_on), V_next)[1]
-        wrench = -g[:6] / h
-        centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
-        xfrc = scatter(xfrc, mate.body, reaction_of(wrench, frames[i].x, centre))
-    d = mjx_step(m, d.replace(xfrc_applied=xfrc))
+        xfrc = xfrc + external * keep[:, None]
+    if mujoco_moves(world, m):
+        d = mjx_step(m, d.replace(xfrc_applied=xfrc))
+    else:  # MuJoCo holds nothing that moves: the DANOs are integrated below, time advances
+        d = d.replace(time=d.time + h, xfrc_applied=xfrc)
 
     qpos, qvel = d.qpos, d.qvel
     V_next = V_next.reshape(n, 6)

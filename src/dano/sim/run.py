@@ -10,6 +10,7 @@ with, and names the frame, the body, its contacts' penetration and the time step
 
 import csv
 import dataclasses
+import time
 import warnings
 from pathlib import Path
 
@@ -104,6 +105,60 @@ class Simulation:
     def batch_data(self, size: int) -> mjx.Data:
         """`size` copies of the initial state, with a leading batch axis (set qpos, qvel per env)."""
         return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (size, *jnp.shape(x))), self.data)
+
+
+@dataclasses.dataclass(frozen=True)
+class Profile:
+    """Where a rollout's time goes (`profile`), seconds: tracing and lowering, XLA compilation, one
+    run (median), and one run with the DANO contact switched off (the engine alone: MuJoCo's step
+    and the DANOs' free motion); `contact` is the difference. Per frame: divide by `frames`."""
+
+    frames: int
+    lower: float
+    compile: float
+    run: float
+    engine: float
+
+    @property
+    def contact(self) -> float:
+        return max(self.run - self.engine, 0.0)
+
+    def lines(self) -> list[str]:
+        per = 1e3 / self.frames
+        share = lambda x: 100.0 * x / self.run if self.run > 0 else 0.0  # noqa: E731
+        return [
+            f"compile: {self.lower:.2f} s tracing and lowering + {self.compile:.2f} s XLA",
+            f"run:     {self.run:.3f} s for {self.frames} frames ({self.run * per:.3f} ms per frame)",
+            f"  contact {self.contact * per:.3f} ms per frame ({share(self.contact):.0f} %), "
+            f"engine {self.engine * per:.3f} ms per frame ({share(self.engine):.0f} %)",
+        ]
+
+
+def profile(sim: Simulation, n_frames: int | None = None, repeats: int = 3) -> Profile:
+    """Times a rollout of `sim` apart (`Profile`): lowering and compiling (`lower().compile()`), the
+    median of `repeats` runs, and the same rollout without any DANO contact pair."""
+    n = sim.scene.n_steps if n_frames is None else n_frames
+
+    def timed(world, params):
+        fn = jax.jit(
+            lambda d: rollout(world, params, sim.mjx_model, d, n).qpos[-1], compiler_options=compiler_options(world)
+        )
+        t0 = time.perf_counter()
+        lowered = fn.lower(sim.data)
+        t1 = time.perf_counter()
+        compiled = lowered.compile()
+        t2 = time.perf_counter()
+        runs = []
+        for _ in range(max(1, repeats)):
+            t = time.perf_counter()
+            jax.block_until_ready(compiled(sim.data))
+            runs.append(time.perf_counter() - t)
+        return t1 - t0, t2 - t1, float(np.median(runs))
+
+    lower, comp, run = timed(sim.world, sim.params)
+    free = dataclasses.replace(sim.world, contact=False)
+    engine = timed(free, dataclasses.replace(sim.params, contact=()))[2]
+    return Profile(n, lower, comp, run, engine)
 
 
 def shard_batch(tree):

@@ -294,6 +294,9 @@ class World(eqx.Module):
     integrator: str = eqx.field(static=True, default="implicit")
     fallback_slot: int = eqx.field(static=True, default=-1)
     """`mjx.Data.userdata` slot counting the steps whose active sets overflowed (-1: none)."""
+    contact: bool = eqx.field(static=True, default=True)
+    """False: no DANO contact pair at all (`pairs` is empty; `dano.sim.run.profile` times the engine
+    alone with it)."""
 
 
 class Params(eqx.Module):
@@ -313,6 +316,8 @@ class Params(eqx.Module):
 def pairs(world: World) -> tuple[tuple[int, str, int], ...]:
     """Contact pairs (dano index, other kind, other index); kinds: ground, primitive, dano (i < j)."""
     out: list[tuple[int, str, int]] = []
+    if not world.contact:
+        return ()
     for i in range(len(world.danos)):
         if world.ground_height is not None:
             out.append((i, "ground", 0))
