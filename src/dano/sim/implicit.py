@@ -36,7 +36,8 @@ from mujoco import mjx
 
 from dano.contact import active
 from dano.contact.friction import Patch, patch_terms
-from dano.contact.pairs import Frame, near
+from dano.contact.overlap import signed_distance
+from dano.contact.pairs import Frame
 from dano.contact.pairs import reaction as reaction_of
 from dano.contact.support import Support, dano_support, normal_terms, normal_velocity, overlap, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
@@ -153,6 +154,15 @@ def run_if(pred: Bool[Array, ""], fn, x):
     return jax.lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros_like(c[0]), fn(c[1])), (pred, x))[1]
 
 
+def unless(safe: Bool[Array, ""], check) -> Bool[Array, ""]:
+    """check() where not `safe`, else False: a loop that runs once or not at all, so under `vmap`
+    the check runs only when some element needs it (a `lax.cond` there would run it always). Not
+    differentiable; for boolean decisions."""
+    return jax.lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros_like(c[0]), check()), (~safe, jnp.zeros((), bool)))[
+        1
+    ]
+
+
 class _Sets(eqx.Module):
     """Each pair's support and patch, the damper's lagged overlaps and the normal velocities at V~:
     all the points, or their active sets."""
@@ -196,14 +206,20 @@ def mujoco_moves(world: World, m: mjx.Model) -> bool:
     return m.nv > 6 * len(world.danos) or m.nu > 0
 
 
-def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame) -> Support:
+BROAD_MARGIN = 0.01
+"""m: a primitive partner's points are evaluated when the DANO's bounding sphere comes within this
+of it (plus the indicator width and the partner's own motion over the step), at the pose the free
+motion reaches: a contact made within one step by another contact's impulse larger than this
+margin is seen one step late."""
+
+
+def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame, h: float) -> Support:
     """Pair i's support at the predicted frames (a: the DANO's; b: a DANO partner's predicted frame,
-    else the partner's current one), broad phase included."""
+    else the partner's current one), broad phase included (`_within_reach`: a DANO far from a
+    primitive costs no point evaluation)."""
     if mate.dano >= 0:
         return dano_support(bodies[i], bodies[mate.dano], a, b)
     fn = lambda: primitive_support(mate.shape, bodies[i], a, p.indicator_width)  # noqa: E731
-    if not mate.radius:
-        return fn()
 
     def far() -> Support:
         """No point can touch: weightless, held (gain 0) and outside the law's support (s0 = -2), so
@@ -213,7 +229,18 @@ def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame) -> Suppo
         s0 = jnp.full(sup.s0.shape, -2.0, sup.s0.dtype)
         return Support(zero(sup.at), zero(sup.normal), zero(sup.weight), s0, zero(sup.gain), sup.smooth)
 
-    return jax.lax.cond(near(bodies[i], a, b.x, mate.radius), fn, far)
+    return jax.lax.cond(_within_reach(mate.shape, bodies[i], a, b, h, p.indicator_width), fn, far)
+
+
+def _within_reach(shape, body, a: Frame, b: Frame, h: float, delta) -> Array:
+    """Broad phase of a DANO (predicted frame a) and a primitive (current frame b, moving over the
+    step h): whether a point of the DANO can be within the indicator width `delta` plus `BROAD_MARGIN`
+    of it. Signed distances are 1-Lipschitz, so no point of the DANO (within `reach` of its centre)
+    is nearer than sd(centre) - reach; the partner's points approach by at most h |u_b|."""
+    reach = jnp.sqrt(jnp.max(jnp.sum(body.points * body.points, axis=0)))
+    gap = signed_distance(shape, a.x[:, None])[0] - reach
+    sweep = h * (jnp.linalg.norm(b.v) + jnp.linalg.norm(b.w) * (jnp.linalg.norm(a.x - b.x) + reach))
+    return gap - sweep < delta + BROAD_MARGIN
 
 
 def _centroid(patch: Patch, psi: Array) -> Patch:
@@ -256,7 +283,7 @@ def implicit_step(
     for p, (i, _, _), mate in zip(params.contact, pair_list, mates, strict=True):
         a = start[i]
         b = start[mate.dano] if mate.dano >= 0 else mate.frame
-        sup = _support(world, p, mate, bodies, i, a, b)
+        sup = _support(world, p, mate, bodies, i, a, b, h)
         zero = jnp.zeros_like(sup.at)
         if mate.dano >= 0:
             patch = Patch(
@@ -324,88 +351,98 @@ def implicit_step(
 
         return f
 
-    full = point_sets(supports, patches)
-    # The active set of each pair (`dano.contact.active`), where its budget is below its points.
-    budgets = [
-        world.danos[i].budget + (world.danos[mate.dano].budget if mate.dano >= 0 else 0)
-        for (i, _, _), mate in zip(pair_list, mates, strict=True)
-    ]
-    actives = [
-        active.choose(sup, k) if 0 < k < sup.s0.shape[0] else None for sup, k in zip(supports, budgets, strict=True)
-    ]
-    triples = list(zip(supports, patches, actives, strict=True))
-    taken = [active.take(sup, pt, a) if a is not None else (sup, pt) for sup, pt, a in triples]
-    sparse = point_sets([t[0] for t in taken], [t[1] for t in taken])
-    drops = [active.dropped(sup, pt, a) if a is not None else None for sup, pt, a in triples]
-    started_over = jnp.any(jnp.asarray([a.overflow for a in actives if a is not None] or [False]))
-
-    def missed(V) -> Array:
-        """Whether a point that the active sets dropped is live at V (`dano.contact.active`)."""
-        out = started_over
-        for j, a in enumerate(actives):
-            if a is None:
-                continue
-            dV = pair_velocity(j, V) - pair_velocity(j, V_free)
-            exact = lambda j=j, a=a: active.missed(supports[j], patches[j], a, full.u_n0[j], pair_velocity(j, V), h)  # noqa: E731
-            safe = active.bound_holds(supports[j], drops[j], dV, h)
-            out = out | jax.lax.cond(safe, lambda: False, exact)
-        return out
-
-    total_mass = sum(b.mass for b in bodies)
-    tol = 1e-20 * total_mass
-    # The first friction solve starts from the velocities the step starts with, not from the
-    # frictionless answer: a body that friction holds is near them, while without friction it
-    # may slip and turn (a resting box: 1.5 mm/s at its face, far out on the Coulomb law's flat
-    # part, where Newton needs ~20 damped steps to come back instead of ~4).
-    V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in frames])
-    sparse_step = any(a is not None for a in actives)
-
-    def one_pass(carry, k):
-        """Solve k: friction at the normal forces of solve k - 1 (none in the first, `PASSES`), over
-        the active sets, or over all points once a dropped point turns out live (`missed`)."""
-        V_before, over = carry
-        x0 = jnp.where(k == 1, V_now, V_before)
-        on = (k > 0).astype(V_before.dtype)
-        if not sparse_step:
-            return (minimize_convex(objective(full, with_friction(full, V_before, on)), x0, tol), over), V_before
-        small = objective(sparse, with_friction(sparse, V_before, on))
-        trial = newton(small, jax.lax.stop_gradient(x0), tol)
-        over = over | missed(trial)  # once over, the rest of the step is dense: its friction needs all points
-
-        def dense():
-            return objective(full, with_friction(full, V_before, on))
-
-        def optimality(V):
-            return jax.lax.cond(over, lambda V: dense()(V)[1], lambda V: small(V)[1], V)
-
-        def solve(_, x):
-            return run_if(over, lambda x: newton(dense(), x, tol), x)
-
-        return (jax.lax.custom_root(optimality, trial, solve, _tangent_solve), over), V_before
-
-    last_on = jnp.asarray(float(PASSES > 1), V_free.dtype)
-
-    def reactions(V_next, V_before, over):
-        """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (the pair's force on the DANO
-        is -dT/dV_a / h)."""
-        xfrc = jnp.zeros_like(d.xfrc_applied)
-        for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
-            if mate.body < 0:
-                continue
-            if sparse_step:  # solved over the active sets, or over all points if they overflowed
-
-                def grad_of(sets, j=j):
-                    return pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
-
-                g = jax.lax.cond(over, lambda: grad_of(full), lambda: grad_of(sparse))
-            else:
-                g = pair_terms(full, j, with_friction(full, V_before, last_on), V_next)[1]
-            centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
-            xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / h, frames[i].x, centre))
-        return xfrc
-
     def solved():
-        """The passes (one traced pass, run PASSES times: they differ only in their data)."""
+        """The pairs' contact solved: over each pair's active set, checked, or over all points; the
+        passes are one traced pass run PASSES times (they differ only in their data)."""
+
+        def full():  # all the points' sets, formed only where they are used (inside the branches)
+            return point_sets(supports, patches)
+
+        # The active set of each pair (`dano.contact.active`), where its budget is below its points.
+        budgets = [
+            world.danos[i].budget + (world.danos[mate.dano].budget if mate.dano >= 0 else 0)
+            for (i, _, _), mate in zip(pair_list, mates, strict=True)
+        ]
+        actives = [
+            active.choose(sup, k) if 0 < k < sup.s0.shape[0] else None for sup, k in zip(supports, budgets, strict=True)
+        ]
+        triples = list(zip(supports, patches, actives, strict=True))
+        taken = [active.take(sup, pt, a) if a is not None else (sup, pt) for sup, pt, a in triples]
+        sparse = point_sets([t[0] for t in taken], [t[1] for t in taken])
+        drops = [active.dropped(sup, pt, a) if a is not None else None for sup, pt, a in triples]
+        started_over = jnp.any(jnp.asarray([a.overflow for a in actives if a is not None] or [False]))
+
+        def missed(V) -> Array:
+            """Whether a point that the active sets dropped is live at V (`dano.contact.active`)."""
+            out = started_over
+            for j, a in enumerate(actives):
+                if a is None:
+                    continue
+                dV = pair_velocity(j, V) - pair_velocity(j, V_free)
+
+                def exact(j=j, a=a):
+                    u_n0 = normal_velocity(patches[j], pair_velocity(j, V_free))[0]
+                    return active.missed(supports[j], patches[j], a, u_n0, pair_velocity(j, V), h)
+
+                out = out | unless(active.bound_holds(supports[j], drops[j], dV, h), exact)
+            return out
+
+        total_mass = sum(b.mass for b in bodies)
+        tol = 1e-20 * total_mass
+        # The first friction solve starts from the velocities the step starts with, not from the
+        # frictionless answer: a body that friction holds is near them, while without friction it
+        # may slip and turn (a resting box: 1.5 mm/s at its face, far out on the Coulomb law's flat
+        # part, where Newton needs ~20 damped steps to come back instead of ~4).
+        V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in frames])
+        sparse_step = any(a is not None for a in actives)
+
+        def one_pass(carry, k):
+            """Solve k: friction at the normal forces of solve k - 1 (none in the first, `PASSES`), over
+            the active sets, or over all points once a dropped point turns out live (`missed`)."""
+            V_before, over = carry
+            x0 = jnp.where(k == 1, V_now, V_before)
+            on = (k > 0).astype(V_before.dtype)
+            if not sparse_step:
+                sets = full()
+                return (minimize_convex(objective(sets, with_friction(sets, V_before, on)), x0, tol), over), V_before
+            small = objective(sparse, with_friction(sparse, V_before, on))
+            trial = newton(small, jax.lax.stop_gradient(x0), tol)
+            over = over | missed(trial)  # once over, the rest of the step is dense: its friction needs all points
+
+            def dense():
+                sets = full()
+                return objective(sets, with_friction(sets, V_before, on))
+
+            def optimality(V):
+                return jax.lax.cond(over, lambda V: dense()(V)[1], lambda V: small(V)[1], V)
+
+            def solve(_, x):
+                return run_if(over, lambda x: newton(dense(), x, tol), x)
+
+            return (jax.lax.custom_root(optimality, trial, solve, _tangent_solve), over), V_before
+
+        last_on = jnp.asarray(float(PASSES > 1), V_free.dtype)
+
+        def reactions(V_next, V_before, over):
+            """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (the pair's force on the DANO
+            is -dT/dV_a / h)."""
+            xfrc = jnp.zeros_like(d.xfrc_applied)
+            for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
+                if mate.body < 0:
+                    continue
+                if sparse_step:  # solved over the active sets, or over all points if they overflowed
+
+                    def grad_of(sets, j=j):
+                        return pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
+
+                    g = jax.lax.cond(over, lambda: grad_of(full()), lambda: grad_of(sparse))
+                else:
+                    sets = full()
+                    g = pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
+                centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
+                xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / h, frames[i].x, centre))
+            return xfrc
+
         (V_next, over), befores = jax.lax.scan(one_pass, (V_free, jnp.zeros((), bool)), jnp.arange(PASSES))
         return V_next, over, reactions(V_next, befores[-1], over)
 
