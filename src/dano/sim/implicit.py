@@ -372,6 +372,9 @@ def implicit_step(
         drops = [active.dropped(sup, pt, a) if a is not None else None for sup, pt, a in triples]
         started_over = jnp.any(jnp.asarray([a.overflow for a in actives if a is not None] or [False]))
 
+        # Every point's normal velocity at V~, for the exact check (once per step, not per pass).
+        u_n0 = [normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(patches)]
+
         def missed(V) -> Array:
             """Whether a point that the active sets dropped is live at V (`dano.contact.active`)."""
             out = started_over
@@ -381,8 +384,7 @@ def implicit_step(
                 dV = pair_velocity(j, V) - pair_velocity(j, V_free)
 
                 def exact(j=j, a=a):
-                    u_n0 = normal_velocity(patches[j], pair_velocity(j, V_free))[0]
-                    return active.missed(supports[j], patches[j], a, u_n0, pair_velocity(j, V), h)
+                    return active.missed(supports[j], patches[j], a, u_n0[j], pair_velocity(j, V), h)
 
                 out = out | unless(active.bound_holds(supports[j], drops[j], dV, h), exact)
             return out
