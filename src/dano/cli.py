@@ -89,17 +89,17 @@ def _simulate(args: argparse.Namespace) -> None:
     print(f"simulating {n} frames of {scene.timestep} s ({scene.substeps} substeps) ...", file=sys.stderr)
     traj = sim.run(n)
     write_csv(args.output, traj, sim)
-    if args.profile:
-        from dano.sim.run import profile
-
-        for line in profile(sim, n).lines():
-            print(line)
     bodies = len(sim.world.names) + sum(a >= 0 for a in sim.world.prim_qpos)
     print(f"wrote {args.output}: {n + 1} frames x {bodies} bodies")
     if args.video:
         from dano.sim.render import render_video
 
         print(f"wrote {render_video(sim, traj, args.video)}")
+    if args.profile:
+        from dano.sim.run import profile
+
+        for line in profile(sim, n).lines():
+            print(line)
 
 
 def _sysid(args: argparse.Namespace) -> None:
