@@ -7,11 +7,11 @@ import jax
 import pytest
 
 jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 # The command line's persistent compilation cache (`dano.cli.compilation_cache`) stays off in the
 # tests that call `dano.cli.main`: each test compiles what it runs, whatever ran before.
 os.environ["DANO_COMPILATION_CACHE"] = "off"
-jax.config.update("jax_numpy_rank_promotion", "raise")
-jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 SHARED = Path(os.environ.get("DANO_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared")).resolve()
 DOJO = SHARED / "data" / "dojo"

@@ -150,17 +150,8 @@ def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array,
 def run_if(pred: Bool[Array, ""], fn, x):
     """fn(x) where pred, else x: a loop that runs once or not at all, so under `vmap` fn runs only
     when some element needs it (a `lax.cond` there would run it always). Not reverse-differentiable;
-    use it in a `custom_root` solve."""
+    use it in a `custom_root` solve, or for a decision that is not differentiated (a boolean)."""
     return jax.lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros_like(c[0]), fn(c[1])), (pred, x))[1]
-
-
-def unless(safe: Bool[Array, ""], check) -> Bool[Array, ""]:
-    """check() where not `safe`, else False: a loop that runs once or not at all, so under `vmap`
-    the check runs only when some element needs it (a `lax.cond` there would run it always). Not
-    differentiable; for boolean decisions."""
-    return jax.lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros_like(c[0]), check()), (~safe, jnp.zeros((), bool)))[
-        1
-    ]
 
 
 class _Sets(eqx.Module):
@@ -229,15 +220,16 @@ def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame, h: float
         s0 = jnp.full(sup.s0.shape, -2.0, sup.s0.dtype)
         return Support(zero(sup.at), zero(sup.normal), zero(sup.weight), s0, zero(sup.gain), sup.smooth)
 
-    return jax.lax.cond(_within_reach(mate.shape, bodies[i], a, b, h, p.indicator_width), fn, far)
+    reach = world.danos[i].reach
+    return jax.lax.cond(_within_reach(mate.shape, reach, a, b, h, p.indicator_width), fn, far)
 
 
-def _within_reach(shape, body, a: Frame, b: Frame, h: float, delta) -> Array:
+def _within_reach(shape, reach: float, a: Frame, b: Frame, h: float, delta) -> Array:
     """Broad phase of a DANO (predicted frame a) and a primitive (current frame b, moving over the
     step h): whether a point of the DANO can be within the indicator width `delta` plus `BROAD_MARGIN`
     of it. Signed distances are 1-Lipschitz, so no point of the DANO (within `reach` of its centre)
-    is nearer than sd(centre) - reach; the partner's points approach by at most h |u_b|."""
-    reach = jnp.sqrt(jnp.max(jnp.sum(body.points * body.points, axis=0)))
+    is nearer than sd(centre) - reach (`DanoState.reach`, computed once); the partner's points
+    approach by at most h |u_b|."""
     gap = signed_distance(shape, a.x[:, None])[0] - reach
     sweep = h * (jnp.linalg.norm(b.v) + jnp.linalg.norm(b.w) * (jnp.linalg.norm(a.x - b.x) + reach))
     return gap - sweep < delta + BROAD_MARGIN
@@ -386,7 +378,9 @@ def implicit_step(
                 def exact(j=j, a=a):
                     return active.missed(supports[j], patches[j], a, u_n0[j], pair_velocity(j, V), h)
 
-                out = out | unless(active.bound_holds(supports[j], drops[j], dV, h), exact)
+                # the exact check under a once-or-never loop: in a batch, only when some element needs it
+                safe = active.bound_holds(supports[j], drops[j], dV, h)
+                out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
             return out
 
         total_mass = sum(b.mass for b in bodies)

@@ -248,6 +248,9 @@ class DanoState(eqx.Module):
     peak: Float[Array, ""]
     budget: int = eqx.field(static=True, default=0)
     """points per contact pair that the implicit step solves over (`dano.contact.active`); 0: all."""
+    reach: float = eqx.field(static=True, default=float("inf"))
+    """m: the largest distance of a point from the centre of mass (the broad phase's bounding
+    sphere; inf: no broad phase)."""
 
 
 class LinkGeom(eqx.Module):
@@ -494,6 +497,7 @@ def compile_scene(scene: Scene):
             peak=jnp.asarray(b.dano.peak if b.dano.peak is not None else jnp.max(b.dano.densities)),
             normals=jnp.asarray(b.dano.normals.T),
             budget=_budget(scene, b),
+            reach=float(np.max(np.linalg.norm(np.asarray(b.dano.body_points), axis=1))),
         )
         for b in scene.bodies
     )
