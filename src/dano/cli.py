@@ -344,7 +344,10 @@ def _parse_levels(text: str | None, peak: float) -> list[float]:
 
 
 def parser() -> argparse.ArgumentParser:
+    from dano import __version__
+
     p = argparse.ArgumentParser(prog="dano", description="Dynamics-Augmented Neural Objects")
+    p.add_argument("--version", action="version", version=f"dano {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     b = sub.add_parser("build", help="build a DANO from a field, mesh, grid, checkpoint or reference collider")
@@ -506,13 +509,13 @@ def compilation_cache() -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    import jax
+    args = parser().parse_args(argv)
+    import jax  # after parsing: `dano --help` and usage errors need no JAX
 
     # Float64 throughout, as the tests run: identification needs it (in float32 the Gauss-Newton
     # Hessian of a stiff contact overflows), and one precision keeps every command's numbers alike.
     jax.config.update("jax_enable_x64", True)
     compilation_cache()
-    args = parser().parse_args(argv)
     try:
         args.run(args)
     except DanoError as e:

@@ -32,8 +32,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
-from mujoco import mjx
 
+from dano._mjx import mjx
 from dano.contact import active
 from dano.contact.friction import Patch, patch_terms
 from dano.contact.overlap import signed_distance

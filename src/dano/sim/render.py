@@ -1,10 +1,14 @@
 """Rendering rollouts to MP4/GIF with MuJoCo's own renderer, headless (EGL or OSMesa).
 
 DANOs have no MuJoCo geoms, so each frame adds their surface points as small spheres to the
-MuJoCo scene (a subsample, coloured per body). The headless GL backend is chosen through
-`MUJOCO_GL` (set to "egl" by `dano.sim` unless the user set it).
+MuJoCo scene (a subsample, coloured per body). `renderer` picks the OpenGL backend when a renderer
+is made, not at import: the user's `MUJOCO_GL` if set, MuJoCo's own choice where a display exists
+(or off Linux), else EGL and then OSMesa (headless Linux).
 """
 
+import contextlib
+import os
+import platform
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -20,6 +24,53 @@ _COLOURS = np.array([[0.85, 0.55, 0.35, 1], [0.35, 0.6, 0.85, 1], [0.5, 0.8, 0.4
 
 class RenderError(DanoError):
     """No headless OpenGL context could be made (install EGL or OSMesa, or set MUJOCO_GL)."""
+
+
+def headless_backends() -> tuple[str | None, ...]:
+    """The OpenGL backends `make_renderer` tries, in order (None: MuJoCo's own choice, `MUJOCO_GL`)."""
+    if os.environ.get("MUJOCO_GL") or platform.system() != "Linux":
+        return (None,)
+    if os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"):
+        return (None, "egl", "osmesa")
+    return ("egl", "osmesa")
+
+
+def make_renderer(model: mujoco.MjModel, height: int, width: int, **kwargs) -> mujoco.Renderer:
+    """MuJoCo's offscreen renderer on the first OpenGL backend that works (`headless_backends`).
+
+    MuJoCo fixes its backend from `MUJOCO_GL` when it is imported; dano sets no environment variable
+    at import, so here the backend's context class is swapped in only while this renderer is made.
+
+    Raises:
+        RenderError: no backend could make a context (names each backend's reason).
+    """
+    from mujoco.rendering.classic import gl_context
+
+    reasons = []
+    for backend in headless_backends():
+        try:
+            with _gl_backend(gl_context, backend):
+                return mujoco.Renderer(model, height, width, **kwargs)
+        except Exception as e:  # MuJoCo raises several kinds when no GL context can be made
+            reasons.append(f"{backend or os.environ.get('MUJOCO_GL') or 'default'}: {type(e).__name__}: {e}")
+    raise RenderError(f"cannot render: no OpenGL context ({'; '.join(reasons)}); install EGL or OSMesa")
+
+
+@contextlib.contextmanager
+def _gl_backend(gl_context, backend: str | None):
+    if backend is None:
+        yield
+        return
+    if backend == "egl":
+        from mujoco.egl import GLContext
+    else:
+        from mujoco.osmesa import GLContext
+    saved = getattr(gl_context, "GLContext", None)
+    gl_context.GLContext = GLContext
+    try:
+        yield
+    finally:
+        gl_context.GLContext = saved
 
 
 def render_video(
@@ -46,11 +97,7 @@ def render_video(
     model = sim.model
     # Software GL renders thousands of small spheres: coarse spheres and no shadows keep it ~20x faster.
     model.vis.quality.numslices, model.vis.quality.numstacks = 8, 4
-    try:
-        renderer = mujoco.Renderer(model, height, width, max_geom=10000)
-    except Exception as e:  # MuJoCo raises several kinds when no GL context can be made
-        reason = f"{type(e).__name__}: {e}"
-        raise RenderError(f"cannot render: no headless OpenGL ({reason}); install EGL or OSMesa") from None
+    renderer = make_renderer(model, height, width, max_geom=10000)
     data = mujoco.MjData(model)
     qpos = np.asarray(traj.qpos)
     every = max(1, int(round(1.0 / (fps * sim.scene.timestep))))

@@ -18,8 +18,8 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
+from dano._mjx import mjx
 from dano.contact.overlap import signed_distance
 from dano.contact.pairs import occupancy, world_points
 from dano.errors import DanoError
@@ -205,15 +205,18 @@ class ContactBudgetWarning(UserWarning):
 
 
 def compiler_options(world) -> dict | None:
-    """XLA options for jitting a rollout of `world` on this backend.
+    """XLA options for jitting a rollout of `world` on this backend (dano sets no process-wide flag).
 
-    On CPU, XLA's fusion emitters make MJX's kinematic-tree code very slow: a 9-hinge chain steps in
-    8.1 ms with them and 1.0 ms without, the Panda's kinematics in 54 ms vs 0.6 ms (measured here),
-    while they speed up the DANO contact code (bunny, per-point: 10.2k vs 7.2k steps/s). So they are
-    switched off for scenes with an articulated robot only. Pass the result to
+    On CPU, XLA's fusion emitters (jaxlib 0.10) duplicate work inside fusions along a kinematic
+    chain once its frames are rotated: `python bench/xla_fusion.py` measured MJX kinematics of a
+    9-hinge chain with rotated frames at 7292 ms per call with them and 0.16 ms without, the Panda's
+    73 ms and 0.30 ms; one implicit step of the resting bunny DANO 1.08 / 0.90 ms, then 0.71 / 0.68
+    and 0.76 / 0.77 ms on repeats (no difference). So every dano jit on CPU turns them off (the
+    same as the process-wide `XLA_FLAGS` that earlier versions set on import). Pass the result to
     `jax.jit(..., compiler_options=...)` when jitting `rollout` yourself.
     """
-    if world.links and jax.default_backend() == "cpu":
+    del world  # the same for every scene today; kept so a per-scene choice needs no API change
+    if jax.default_backend() == "cpu":
         return {"xla_cpu_use_fusion_emitters": False}
     return None
 

@@ -18,8 +18,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
-from mujoco import mjx
 
+from dano._mjx import mjx
 from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench

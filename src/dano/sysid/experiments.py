@@ -15,10 +15,10 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import trimesh
-from mujoco import mjx
 
+from dano._mjx import mjx
 from dano.contact import ContactParams
-from dano.sim.run import Simulation, at_interval, at_rest, body_poses
+from dano.sim.run import Simulation, at_interval, at_rest, body_poses, compiler_options
 from dano.sim.scene import DanoBody, Primitive, Scene, compile_scene
 from dano.sim.step import rollout
 from dano.sysid.data import Track
@@ -109,7 +109,8 @@ def push_recordings(
         d = mjx.make_data(m).replace(qpos=qpos, qvel=jnp.asarray(qvel0))
         return rollout(world, params, m, d, n_frames - 1, ctrl=ctrl).qpos
 
-    qpos = np.asarray(jax.jit(jax.vmap(one))(jnp.asarray(starts), jnp.asarray(plan.ctrls)))
+    jitted = jax.jit(jax.vmap(one), compiler_options=compiler_options(world))
+    qpos = np.asarray(jitted(jnp.asarray(starts), jnp.asarray(plan.ctrls)))
     d = world.dano_qpos[0]
     return [
         _push_recording(q[:, d : d + 7], q[:, a : a + 3] + home, ctrl, fps, "synthetic push")

@@ -23,8 +23,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
-from mujoco import mjx
 
+from dano._mjx import mjx
 from dano.contact.wrench import ContactParams
 from dano.errors import DanoError
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul

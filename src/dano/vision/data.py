@@ -48,7 +48,7 @@ from tqdm.auto import tqdm
 
 from dano.errors import DanoFileError, MeshError
 from dano.io import atomic_write
-from dano.sim.render import RenderError
+from dano.sim.render import make_renderer
 from dano.sysid.data import Track, write_track
 
 
@@ -701,11 +701,7 @@ class _MeshRenderer:
         self.data = mujoco.MjData(self.model)
         self.object_id = self.model.geom("object").id
         self.floor_id = self.model.geom("floor").id if floor_height is not None else -2
-        try:
-            self.renderer = mujoco.Renderer(self.model, camera.height, camera.width)
-        except Exception as e:  # MuJoCo raises several kinds when no GL context can be made
-            reason = f"{type(e).__name__}: {e}"
-            raise RenderError(f"cannot render: no headless OpenGL ({reason}); install EGL or OSMesa") from None
+        self.renderer = make_renderer(self.model, camera.height, camera.width)
 
     def __enter__(self) -> "_MeshRenderer":
         return self
