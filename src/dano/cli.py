@@ -3,12 +3,114 @@
 import argparse
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from dano import validate
 from dano.errors import DanoError
+
+
+class UsageError(DanoError):
+    """A command-line argument that is missing, malformed or out of range (exit status 2)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: `dano CMD: UsageError: argument --x: ... (see dano CMD --help)`."""
+
+    def error(self, message: str):  # type: ignore[override]
+        print(f"{self.prog}: UsageError: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
+def _checked(check):
+    """An argparse `type=` from a `dano.validate`-style check: its `DanoError` becomes argparse's."""
+
+    def parse(text: str):
+        try:
+            return check(text)
+        except DanoError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+
+    return parse
+
+
+def _int(low: int):
+    def check(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise UsageError(f"must be a whole number, got {text!r}") from None
+        return validate.integer(value, "", UsageError, low=low)
+
+    return _checked(check)
+
+
+def _float(low: float | None = None, strict: bool = False):
+    def check(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise UsageError(f"must be a number, got {text!r}") from None
+        return validate.number(value, "", UsageError, low=low, strict=strict)
+
+    return _checked(check)
+
+
+_POSITIVE = _float(0.0, strict=True)
+
+
+def _output(*suffixes: str):
+    """An output file: its folder exists, it is not a folder, and (if given) its suffix is allowed.
+    Checked when the command line is parsed, before any work, so nothing is half done."""
+
+    def check(text: str) -> str:
+        path = Path(text)
+        if suffixes and not text.lower().endswith(suffixes):
+            raise UsageError(f"{text!r} must end with {' or '.join(suffixes)}")
+        if path.is_dir():
+            raise UsageError(f"{text!r} is a folder; give a file name")
+        if not path.parent.is_dir():
+            raise UsageError(f"folder {str(path.parent)!r} of {text!r} does not exist")
+        return text
+
+    return _checked(check)
+
+
+def _new_folder(text: str) -> str:
+    path = Path(text)
+    if not path.parent.is_dir():
+        raise argparse.ArgumentTypeError(f"folder {str(path.parent)!r} of {text!r} does not exist")
+    return text
+
+
+def _numbers(n: int, form: str, quaternion_at: int | None = None):
+    """`n` comma-separated numbers (e.g. `x,y,z,qw,qx,qy,qz`); a quaternion part must be non-zero."""
+
+    def check(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            values = ()
+        if len(values) != n or not all(np.isfinite(values)):
+            raise UsageError(f"takes {n} comma-separated numbers {form}, got {text!r}")
+        if quaternion_at is not None and not any(values[quaternion_at:]):
+            raise UsageError(f"the quaternion of {text!r} is zero")
+        return values
+
+    return _checked(check)
+
+
+def _gravity(text: str):
+    if text == "fit":
+        return text
+    return _numbers(3, "gx,gy,gz (or 'fit')")(text)
+
+
+VIDEO = (".mp4", ".gif")
+PLOT = (".png", ".pdf", ".svg", ".jpg")
 
 
 def _build(args: argparse.Namespace) -> None:
@@ -110,7 +212,7 @@ def _sysid(args: argparse.Namespace) -> None:
     if not fit:
         raise DanoError("--fit names at least one parameter, e.g. --fit friction,mass_scale")
     config = SysidConfig(
-        fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=_parse_gravity(args.gravity), body=args.body,
+        fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=args.gravity, body=args.body,
         window=args.window, initial=args.fit_initial, sigma=args.sigma, init=_parse_pairs(args.init, "--init", 1),
         bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
     )  # fmt: skip
@@ -167,18 +269,6 @@ def _default_bunny():
     from dano.fields import mesh_field
 
     return build_dano(mesh_field(bunny_mesh(), resolution=64, progress=False), n_points=200, mass=0.5)
-
-
-def _parse_gravity(text: str | None):
-    if text is None or text == "fit":
-        return text
-    try:
-        g = [float(v) for v in text.split(",")]
-    except ValueError:
-        g = []
-    if len(g) != 3:
-        raise DanoError(f"--gravity takes 'fit' or a direction gx,gy,gz in the data's frame, got {text!r}")
-    return g
 
 
 def _parse_pairs(text: str | None, option: str, n: int) -> dict:
@@ -288,10 +378,7 @@ def _track(args: argparse.Namespace) -> None:
         raise DanoError(f"{args.field}: tracking needs a field (grid, checkpoint, mesh, spec), not a DANO")
     init = None
     if args.init:
-        values = [float(v) for v in args.init.split(",")]
-        if len(values) != 7:
-            raise DanoError(f"--init takes x,y,z,qw,qx,qy,qz, got {args.init!r}")
-        init = (np.asarray(values[:3]), np.asarray(values[3:]))
+        init = (np.asarray(args.init[:3]), np.asarray(args.init[3:]))
     config = TrackConfig(iterations=args.iterations, refine_iterations=args.refine)
     result = track(field, camera, masks, config, init=init)
     positions = result.positions
@@ -346,22 +433,22 @@ def _parse_levels(text: str | None, peak: float) -> list[float]:
 def parser() -> argparse.ArgumentParser:
     from dano import __version__
 
-    p = argparse.ArgumentParser(prog="dano", description="Dynamics-Augmented Neural Objects")
+    p = _Parser(prog="dano", description="Dynamics-Augmented Neural Objects")
     p.add_argument("--version", action="version", version=f"dano {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     b = sub.add_parser("build", help="build a DANO from a field, mesh, grid, checkpoint or reference collider")
     b.add_argument("source", help="mesh file, grid .npz, neural checkpoint .npz, reference collider .npz, or a spec "
                    "such as sphere:r=0.05, box:size=0.1,0.06,0.03, capsule:r=0.02,half_length=0.05")  # fmt: skip
-    b.add_argument("-o", "--output", required=True, help="output .dano.npz")
-    b.add_argument("--points", type=int, default=5000, help="candidate surface points (default 5000)")
-    b.add_argument("--mass", type=float, help="total mass in kg (fixes the mass scale alpha)")
-    b.add_argument("--alpha", type=float, help="mass scale alpha, kg per (density unit m^3) (default 1)")
-    b.add_argument("--scale", type=float, default=1.0, help="multiply lengths by this (m per source unit)")
-    b.add_argument("--seed", type=int, default=0)
+    b.add_argument("-o", "--output", required=True, type=_output(".npz"), help="output .dano.npz")
+    b.add_argument("--points", type=_int(1), default=5000, help="candidate surface points (default 5000)")
+    b.add_argument("--mass", type=_POSITIVE, help="total mass in kg (fixes the mass scale alpha)")
+    b.add_argument("--alpha", type=_POSITIVE, help="mass scale alpha, kg per (density unit m^3) (default 1)")
+    b.add_argument("--scale", type=_POSITIVE, default=1.0, help="multiply lengths by this (m per source unit)")
+    b.add_argument("--seed", type=_int(0), default=0)
     b.add_argument("--window", help="density window LOW,HIGH (default 0.1,0.9 x the field's peak)")
     b.add_argument("--normals", choices=["autodiff", "fd"], default="autodiff")
-    b.add_argument("--resolution", type=int, default=96, help="grid nodes along a mesh's longest side")
+    b.add_argument("--resolution", type=_int(4), default=96, help="grid nodes along a mesh's longest side")
     b.add_argument("--repair", action="store_true", help="make a non-watertight mesh watertight with pymeshfix")
     b.set_defaults(run=_build)
 
@@ -372,9 +459,9 @@ def parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="simulate a scene TOML file, write the trajectory CSV (and a video)")
     s.add_argument("scene", help="scene .toml (see README)")
-    s.add_argument("-o", "--output", required=True, help="trajectory CSV: t,body,x,y,z,qw,qx,qy,qz")
-    s.add_argument("--video", help="render to this .mp4 or .gif")
-    s.add_argument("--steps", type=int, help="frames to simulate (default: duration / timestep)")
+    s.add_argument("-o", "--output", required=True, type=_output(), help="trajectory CSV: t,body,x,y,z,qw,qx,qy,qz")
+    s.add_argument("--video", type=_output(*VIDEO), help="render to this .mp4 or .gif")
+    s.add_argument("--steps", type=_int(1), help="frames to simulate (default: duration / timestep)")
     s.add_argument("--profile", action="store_true",
                    help="also time the rollout apart: compile, run, and its DANO contact vs the engine")  # fmt: skip
     s.set_defaults(run=_simulate)
@@ -384,35 +471,39 @@ def parser() -> argparse.ArgumentParser:
     y.add_argument("--traj", action="append", required=True, help="pose CSV t,x,y,z,qw,qx,qy,qz (repeatable)")
     y.add_argument("--fit", required=True, help="comma-separated: friction, mass_scale, inertia_scale, contact keys")
     y.add_argument("--json", action="store_true", help='one JSON object {"params", "stderr", "loss", "seconds"}')
-    y.add_argument("--plot", help="PNG of observed vs fitted trajectories and the loss")
-    y.add_argument("--fps", type=float, help="frame rate of files without a t column")
-    y.add_argument("--scale", type=float, help="metres per unit of the positions in the files")
-    y.add_argument("--size", type=float, help="the object's real longest side, m (DANO and data share units)")
-    y.add_argument("--gravity", help="gravity direction gx,gy,gz in the data's frame, or 'fit' (plane of motion)")
+    y.add_argument("--plot", type=_output(*PLOT), help="PNG of observed vs fitted trajectories and the loss")
+    y.add_argument("--fps", type=_POSITIVE, help="frame rate of files without a t column")
+    y.add_argument("--scale", type=_POSITIVE, help="metres per unit of the positions in the files")
+    y.add_argument("--size", type=_POSITIVE, help="the object's real longest side, m (DANO and data share units)")
+    y.add_argument(
+        "--gravity",
+        type=_checked(_gravity),
+        help="gravity direction gx,gy,gz in the data's frame, or 'fit' (plane of motion)",
+    )
     y.add_argument("--body", help="the scene body that files without a body column observe")
-    y.add_argument("--window", type=int, help="frame intervals per shooting window (default: whole trajectories)")
+    y.add_argument("--window", type=_int(1), help="frame intervals per shooting window (default: whole trajectories)")
     y.add_argument("--fit-initial", choices=["none", "velocity", "state"], default="none",
                    help="also fit each window's initial velocity, or pose and velocity (default: none)")  # fmt: skip
-    y.add_argument("--sigma", type=float, default=1e-3, help="tracking noise, m (default 0.001)")
+    y.add_argument("--sigma", type=_POSITIVE, default=1e-3, help="tracking noise, m (default 0.001)")
     y.add_argument("--init", help="initial guesses name=value,... (default: the scene's values)")
     y.add_argument("--bounds", help="bounds name=low:high,... (default: Table I ranges, widened)")
-    y.add_argument("--max-steps", type=int, default=50)
+    y.add_argument("--max-steps", type=_int(1), default=50)
     y.set_defaults(run=_sysid)
 
     t = sub.add_parser("trajopt", help="trajectory optimisation: a robot pushes a DANO to a goal (constrained iLQR)")
     t.add_argument("task", choices=["push"])
     t.add_argument("--robot", choices=["sphere", "panda"], default="sphere")
     t.add_argument("--dano", help="the object, a .dano.npz (default: the Stanford bunny, 0.5 kg, 200 points)")
-    t.add_argument("--goal", type=float, nargs=2, default=(0.1, 0.0), metavar=("X", "Y"),
+    t.add_argument("--goal", type=_float(), nargs=2, default=(0.1, 0.0), metavar=("X", "Y"),
                    help="where the object should end, m, relative to where it rests (default 0.1 0)")  # fmt: skip
-    t.add_argument("--horizon", type=int, default=10, help="frames (default 10)")
-    t.add_argument("--dt", type=float, default=0.08, help="seconds per frame (default 0.08)")
-    t.add_argument("--friction", type=float, default=0.3)
+    t.add_argument("--horizon", type=_int(1), default=10, help="frames (default 10)")
+    t.add_argument("--dt", type=_POSITIVE, default=0.08, help="seconds per frame (default 0.08)")
+    t.add_argument("--friction", type=_float(0.0), default=0.3)
     t.add_argument(
         "--goal-cost", action="store_true", help="the goal as a cost, not a constraint (the Panda's default)"
     )
-    t.add_argument("--max-iterations", type=int, default=150)
-    t.add_argument("--video", help="render the open-loop replay to this .mp4 or .gif")
+    t.add_argument("--max-iterations", type=_int(1), default=150)
+    t.add_argument("--video", type=_output(*VIDEO), help="render the open-loop replay to this .mp4 or .gif")
     t.add_argument("--json", action="store_true",
                    help="one JSON object (final_error_m, iterations, seconds, max_violation, ...)")  # fmt: skip
     t.set_defaults(run=_trajopt)
@@ -422,45 +513,49 @@ def parser() -> argparse.ArgumentParser:
                    "data: bluesoap, halfsoap or bunny with --data-dir")  # fmt: skip
     c.add_argument("--levels", help="density levels a,b,c (default 3%%, 50%%, 95%% of the field's peak)")
     c.add_argument("--data-dir", help="the reference data folder (with colliders/ and meshes/)")
-    c.add_argument("--resolution", type=int, default=100, help="grid nodes along the longest side (default 100)")
+    c.add_argument("--resolution", type=_int(4), default=100, help="grid nodes along the longest side (default 100)")
     c.add_argument("--clean", action="store_true", help="keep each level set's largest component, repair it")
     c.add_argument("--repair", action="store_true", help="make a non-watertight source mesh watertight")
-    c.add_argument("--scale", type=float, default=1.0, help="multiply the source's lengths by this (m per unit)")
+    c.add_argument("--scale", type=_POSITIVE, default=1.0, help="multiply the source's lengths by this (m per unit)")
     c.add_argument("--decomposition", choices=["coacd", "vhacd"], default="coacd")
-    c.add_argument("--threshold", type=float, default=0.05, help="CoACD concavity (V-HACD: volume error / 100)")
-    c.add_argument("--max-hulls", type=int, default=-1, help="cap on convex pieces (-1: none)")
-    c.add_argument("--max-faces", type=int, default=10000, help="decimate meshes to this many faces before decomposing")
-    c.add_argument("--points", type=int, default=3000, help="DANO surface points (default 3000)")
-    c.add_argument("--friction", type=float, default=0.5)
-    c.add_argument("--drop-seconds", type=float, default=1.0, help="settling time after the drop (default 1)")
-    c.add_argument("--slide-speed", type=float, default=0.5, help="m/s (default 0.5)")
-    c.add_argument("--push-speed", type=float, default=0.2, help="m/s of the pushing sphere (default 0.2)")
-    c.add_argument("--seed", type=int, default=0)
-    c.add_argument("--plot", help="PNG of every model at rest on the floor (the paper's Fig. 8)")
+    c.add_argument("--threshold", type=_POSITIVE, default=0.05, help="CoACD concavity (V-HACD: volume error / 100)")
+    c.add_argument("--max-hulls", type=_int(-1), default=-1, help="cap on convex pieces (-1: none)")
+    c.add_argument(
+        "--max-faces", type=_int(4), default=10000, help="decimate meshes to this many faces before decomposing"
+    )
+    c.add_argument("--points", type=_int(1), default=3000, help="DANO surface points (default 3000)")
+    c.add_argument("--friction", type=_float(0.0), default=0.5)
+    c.add_argument("--drop-seconds", type=_POSITIVE, default=1.0, help="settling time after the drop (default 1)")
+    c.add_argument("--slide-speed", type=_float(0.0), default=0.5, help="m/s (default 0.5)")
+    c.add_argument("--push-speed", type=_float(0.0), default=0.2, help="m/s of the pushing sphere (default 0.2)")
+    c.add_argument("--seed", type=_int(0), default=0)
+    c.add_argument("--plot", type=_output(*PLOT), help="PNG of every model at rest on the floor (the paper's Fig. 8)")
     c.add_argument("--json", action="store_true", help='one JSON object {"source", "truth", "rows": [...]}')
     c.set_defaults(run=_compare)
 
     r = sub.add_parser("render-views", help="render a mesh from around it into a NeRF-synthetic dataset (with masks)")
     r.add_argument("mesh", help="mesh file (.ply .obj .stl ...)")
-    r.add_argument("-o", "--output", required=True, help="dataset folder to create")
-    r.add_argument("--views", type=int, default=50)
-    r.add_argument("--resolution", type=int, default=64, help="image side, px (default 64)")
-    r.add_argument("--scale", type=float, default=1.0, help="multiply lengths by this (m per unit)")
+    r.add_argument("-o", "--output", required=True, type=_new_folder, help="dataset folder to create")
+    r.add_argument("--views", type=_int(1), default=50)
+    r.add_argument("--resolution", type=_int(8), default=64, help="image side, px (default 64)")
+    r.add_argument("--scale", type=_POSITIVE, default=1.0, help="multiply lengths by this (m per unit)")
     r.add_argument("--repair", action="store_true", help="make a non-watertight mesh watertight first")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=_int(0), default=0)
     r.add_argument("--overwrite", action="store_true")
     r.set_defaults(run=_render_views)
 
     f = sub.add_parser("fit-field", help="fit a density field to posed images (volume rendering), as a solid grid")
     f.add_argument("dataset", help="folder in the NeRF-synthetic layout (transforms.json, images, masks)")
-    f.add_argument("-o", "--output", required=True, help="the solid field, a grid .npz (dano build reads it)")
-    f.add_argument("--steps", type=int, default=1000)
-    f.add_argument("--resolution", type=int, default=64, help="grid nodes along the box's longest side")
-    f.add_argument("--samples", type=int, default=128, help="samples per ray (default 128)")
-    f.add_argument("--downscale", type=int, default=1, help="box-average the images by this factor")
+    f.add_argument(
+        "-o", "--output", required=True, type=_output(".npz"), help="the solid field, a grid .npz (dano build reads it)"
+    )
+    f.add_argument("--steps", type=_int(1), default=1000)
+    f.add_argument("--resolution", type=_int(4), default=64, help="grid nodes along the box's longest side")
+    f.add_argument("--samples", type=_int(2), default=128, help="samples per ray (default 128)")
+    f.add_argument("--downscale", type=_int(1), default=1, help="box-average the images by this factor")
     f.add_argument("--split", default="train")
-    f.add_argument("--raw", help="also write the fitted optical density (1/m) as a grid .npz")
-    f.add_argument("--seed", type=int, default=0)
+    f.add_argument("--raw", type=_output(".npz"), help="also write the fitted optical density (1/m) as a grid .npz")
+    f.add_argument("--seed", type=_int(0), default=0)
     f.add_argument("--json", action="store_true", help="one JSON object (psnr_db, seconds, bounds, ...)")
     f.set_defaults(run=_fit_field)
 
@@ -469,20 +564,26 @@ def parser() -> argparse.ArgumentParser:
     k.add_argument("--field", required=True, help="the object's field: grid/checkpoint .npz, mesh, or spec")
     k.add_argument("--camera", required=True, help="camera JSON {width, height, fx, fy, cx, cy, c2w}")
     k.add_argument("--masks", required=True, help="folder of one mask PNG per frame (white = object)")
-    k.add_argument("-o", "--output", required=True, help="pose CSV t,x,y,z,qw,qx,qy,qz (as dano sysid reads)")
+    k.add_argument(
+        "-o", "--output", required=True, type=_output(), help="pose CSV t,x,y,z,qw,qx,qy,qz (as dano sysid reads)"
+    )
     k.add_argument("--frame", choices=["com", "field"], default="com",
                    help="positions of the centre of mass (default; sysid reads it) or of the field origin")  # fmt: skip
-    k.add_argument("--fps", type=float, default=30.0)
-    k.add_argument("--scale", type=float, default=1.0, help="multiply the field's lengths by this")
-    k.add_argument("--init", help="first frame's pose x,y,z,qw,qx,qy,qz (default: a guess from the first mask)")
-    k.add_argument("--iterations", type=int, default=60, help="Adam steps per frame (default 60)")
-    k.add_argument("--refine", type=int, default=0, help="steps of joint refinement over all frames (default 0)")
+    k.add_argument("--fps", type=_POSITIVE, default=30.0)
+    k.add_argument("--scale", type=_POSITIVE, default=1.0, help="multiply the field's lengths by this")
+    k.add_argument(
+        "--init",
+        type=_numbers(7, "x,y,z,qw,qx,qy,qz", 3),
+        help="first frame's pose x,y,z,qw,qx,qy,qz (default: a guess from the first mask)",
+    )
+    k.add_argument("--iterations", type=_int(1), default=60, help="Adam steps per frame (default 60)")
+    k.add_argument("--refine", type=_int(0), default=0, help="steps of joint refinement over all frames (default 0)")
     k.set_defaults(run=_track)
 
     d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
-    d.add_argument("--out", default="dano-demo", help="output folder (default dano-demo)")
-    d.add_argument("--resolution", type=int, default=96)
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--out", type=_new_folder, default="dano-demo", help="output folder (default dano-demo)")
+    d.add_argument("--resolution", type=_int(8), default=96)
+    d.add_argument("--seed", type=_int(0), default=0)
     d.add_argument("--no-sim", action="store_true", help="only build and plot the DANO")
     d.set_defaults(run=_demo)
     return p
@@ -508,8 +609,23 @@ def compilation_cache() -> str | None:
     return path
 
 
+def attach_negative_values(argv: list[str]) -> list[str]:
+    """`--gravity -0.27,-0.27,-0.92` as `--gravity=-0.27,...`: argparse takes a token that starts with
+    '-' and is not a plain number for an option, so comma-separated negative values need the '='."""
+    out: list[str] = []
+    for token in argv:
+        if out and out[-1].startswith("--") and "=" not in out[-1] and re.match(r"-[\d.]", token) and "," in token:
+            out[-1] = f"{out[-1]}={token}"
+        else:
+            out.append(token)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+    try:
+        args = parser().parse_args(attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    except SystemExit as e:  # --help, --version (0) or a usage error (2, its one line already printed)
+        return e.code if isinstance(e.code, int) else 2
     import jax  # after parsing: `dano --help` and usage errors need no JAX
 
     # Float64 throughout, as the tests run: identification needs it (in float32 the Gauss-Newton
@@ -521,6 +637,9 @@ def main(argv: list[str] | None = None) -> int:
     except DanoError as e:
         print(f"dano {args.command}: {type(e).__name__}: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # the disk: full, read-only, permissions (outputs are written atomically)
+        print(f"dano {args.command}: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -39,3 +39,8 @@ class InvalidMassError(DanoError):
 
 class SpecError(DanoError):
     """An analytic field spec such as `sphere:r=0.05` could not be parsed."""
+
+
+class InvalidValueError(DanoError, ValueError):
+    """A value of the wrong type or outside its physical range: a scene's, a contact parameter's, a
+    command-line option's (`dano.validate`)."""

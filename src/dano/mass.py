@@ -42,7 +42,9 @@ def _moments(field: AbstractField, x: Float[Array, "m 3"], centre: Array, volume
     m0 = volume * jnp.mean(phi)
     m1 = volume * jnp.mean(phi[:, None] * r, axis=0)
     m2 = volume * jnp.einsum("n,ni,nj->ij", phi, r, r) / x.shape[0]
-    return m0, m1, m2, jnp.min(phi)
+    # NaN/Inf become -inf before the min: XLA's CPU min reduction can drop a NaN (a field NaN in part
+    # of its box then read as "zero everywhere"), while -inf always survives it.
+    return m0, m1, m2, jnp.min(jnp.where(jnp.isfinite(phi), phi, -jnp.inf))
 
 
 def _properties(m0, m1, m2, centre, alpha):

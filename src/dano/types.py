@@ -6,7 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano.errors import InvalidMassError
+from dano.errors import InvalidMassError, InvalidValueError
+from dano.validate import inertia_tensor
 
 
 class DANO(eqx.Module):
@@ -70,6 +71,8 @@ class DANO(eqx.Module):
                 raise ValueError(f"DANO.{name} must have shape {want}, got {got}")
         if not isinstance(self.mass, jax.core.Tracer) and not (np.isfinite(self.mass) and self.mass > 0):
             raise InvalidMassError(f"mass must be positive and finite, got {float(self.mass)}")
+        if not isinstance(self.inertia, jax.core.Tracer):
+            inertia_tensor(self.inertia, "DANO.inertia", InvalidValueError)
 
     @property
     def n_points(self) -> int:

@@ -14,18 +14,33 @@ it tends to -a/|a| for |a| >> 1/s and is smooth at a = 0, so gradients exist at 
 Units follow the reference: psi is the overlapping mass in kg, so k is a force per kg.
 """
 
+import dataclasses
+
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from dano.errors import InvalidValueError
 from dano.math import safe_norm
+from dano.validate import is_traced
 
 Scalar = float | Float[Array, ""]
 
 
+def _as_leaf(value):
+    if value is None or isinstance(value, str | bytes | bool):
+        raise InvalidValueError(f"contact parameters are numbers, got {value!r}")
+    return jnp.asarray(value, dtype=jnp.result_type(float))
+
+
 def _param(default: float):
     """A scalar parameter leaf: a Python float or an array (traced, for gradients), stored as an array."""
-    return eqx.field(default=default, converter=lambda v: jnp.asarray(v, dtype=jnp.result_type(float)))
+    return eqx.field(default=default, converter=_as_leaf)
+
+
+_POSITIVE = ("coulomb_regularizer", "stiction_velocity")
+"""Parameters that divide: they must be > 0; every other one must be >= 0."""
 
 
 class ContactParams(eqx.Module):
@@ -63,6 +78,21 @@ class ContactParams(eqx.Module):
     """v_s of the implicit step's friction law, m/s (and rad/s for spin): below it friction is
     viscous, above it Coulomb's (see `dano.contact.friction`); a body held by friction creeps at
     about v_s. The explicit step uses `coulomb_smoothing` and `coulomb_regularizer` instead."""
+
+    def __check_init__(self):
+        """Every concrete value finite and non-negative (`_POSITIVE` ones > 0): a negative friction
+        or spring feeds energy in, a NaN poisons every contact. Traced values (inside `jit`, `grad`)
+        are not checked here."""
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if is_traced(value):
+                continue
+            x = np.asarray(value)
+            bad = ~np.isfinite(x) | ((x <= 0) if f.name in _POSITIVE else (x < 0))
+            if np.any(bad):
+                shown = x if x.ndim == 0 else x[bad][:3]
+                sign = "> 0" if f.name in _POSITIVE else ">= 0"
+                raise InvalidValueError(f"contact parameter {f.name} must be finite and {sign}, got {shown}")
 
 
 class Wrench(eqx.Module):

@@ -17,8 +17,9 @@ import mujoco
 import numpy as np
 from jaxtyping import Array, Float
 
+from dano import validate as V
 from dano.contact import ContactParams, active
-from dano.errors import DanoError
+from dano.errors import InvalidValueError
 from dano.types import DANO
 
 Number = float | int
@@ -29,8 +30,20 @@ PrimitiveKind = Literal["sphere", "capsule", "box"]
 Mode = Literal["static", "free", "mocap", "actuated"]
 
 
-class SceneError(DanoError, ValueError):
-    """A scene file that cannot be understood (unknown key, wrong type, missing file)."""
+class SceneError(InvalidValueError):
+    """A scene that cannot be simulated as given (unknown key, wrong type or range, missing file,
+    unknown pair, a body started inside the ground), raised before any simulation."""
+
+
+def _set(obj, name: str, value) -> None:
+    object.__setattr__(obj, name, value)  # normalising a frozen dataclass's field in __post_init__
+
+
+def _check_pose(obj, where: str, keys=("pos", "vel", "angvel"), quat: str = "quat") -> None:
+    """The pose and velocity fields of a body: 3-vectors and a non-zero quaternion, as floats."""
+    for key in keys:
+        _set(obj, key, V.vector(getattr(obj, key), f"{where}: {key}", SceneError, 3))
+    _set(obj, quat, V.vector(getattr(obj, quat), f"{where}: {quat}", SceneError, 4, nonzero=True))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,6 +68,15 @@ class DanoBody:
     vel: Vec3 = (0.0, 0.0, 0.0)
     angvel: Vec3 = (0.0, 0.0, 0.0)
     field: object = None
+
+    def __post_init__(self):
+        V.text(self.name, "body name", SceneError)
+        where = f"body {self.name!r}"
+        if not isinstance(self.dano, DANO):
+            raise SceneError(f"{where}: dano must be a DANO (dano.build_dano, dano.load_dano), got {type(self.dano)}")
+        _check_pose(self, where)
+        if not V.is_traced(self.dano.inertia):
+            V.inertia_tensor(self.dano.inertia, f"{where}: inertia", SceneError)
 
 
 def _contact_field(body: DanoBody):
@@ -90,6 +112,23 @@ class Primitive:
     mass: Number = 1.0
     vel: Vec3 = (0.0, 0.0, 0.0)
     angvel: Vec3 = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        V.text(self.name, "primitive name", SceneError)
+        where = f"primitive {self.name!r}"
+        V.choice(self.kind, f"{where}: type", SceneError, SIZES)
+        V.choice(self.mode, f"{where}: mode", SceneError, ("static", "free", "mocap", "actuated"))
+        n = len(SIZES[self.kind])
+        size = V.vector(self.size, f"{where}: size ({', '.join(SIZES[self.kind])})", SceneError, n)
+        for name, value in zip(SIZES[self.kind], size, strict=True):
+            V.positive(value, f"{where}: size {name}", SceneError)
+        _set(self, "size", size)
+        _set(self, "mass", V.positive(self.mass, f"{where}: mass", SceneError))
+        _check_pose(self, where)
+
+
+SIZES = {"sphere": ("radius",), "capsule": ("radius", "half_length"), "box": ("hx", "hy", "hz")}
+"""The size entries of each primitive type, m (half extents for a box)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,6 +166,24 @@ class Robot:
     package_dirs: tuple[tuple[str, str], ...] = ()
     contact_bodies: tuple[str, ...] = ()
 
+    def __post_init__(self):
+        V.text(str(self.path), "robot path", SceneError)
+        _set(self, "path", str(self.path))
+        _check_pose(self, "robot", keys=("base_pos",), quat="base_quat")
+        qpos = V.vector(self.qpos, "robot: qpos", SceneError, len(tuple(self.qpos)))
+        _set(self, "qpos", qpos)
+        for key in ("kp", "kv"):
+            _set(self, key, V.number(getattr(self, key), f"robot: {key}", SceneError, low=0.0))
+        if self.armature is not None:
+            _set(self, "armature", V.number(self.armature, "robot: armature", SceneError, low=0.0))
+        dirs = tuple(tuple(item) for item in dict(self.package_dirs).items()) if self.package_dirs else ()
+        for name, folder in dirs:
+            V.text(name, "robot: package name", SceneError)
+            V.text(str(folder), f"robot: folder of package {name!r}", SceneError)
+        _set(self, "package_dirs", tuple((name, str(folder)) for name, folder in dirs))
+        _set(self, "contact_bodies", tuple(V.text(b, "robot: contact_bodies entry", SceneError)
+                                           for b in self.contact_bodies))  # fmt: skip
+
 
 def panda(base_pos: Vec3 = (0.0, 0.0, 0.0), qpos: tuple[Number, ...] = (), **kwargs) -> Robot:
     """The Franka Panda of `example-robot-data` (URDF, STL collision meshes), with the 0.1 kg m²
@@ -154,15 +211,34 @@ def _robot_spec(robot: Robot) -> mujoco.MjSpec:
     path = Path(robot.path)
     if not path.is_file():
         raise SceneError(f"robot file {path} not found")
-    text = path.read_text()
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise SceneError(f"robot file {path} cannot be read: {e}") from None
     if path.suffix.lower() == ".urdf":
         for name, folder in robot.package_dirs:
-            text = text.replace(f"package://{name}", folder)
+            text = text.replace(f"package://{name}/", f"{Path(folder).resolve()}/")
+        unresolved = sorted(set(re.findall(r"package://([^/\"]+)", text)))
+        if unresolved:
+            raise SceneError(
+                f"robot file {path} uses package(s) {unresolved} that package_dirs does not give: pass "
+                f"package_dirs=(({unresolved[0]!r}, FOLDER),)"
+            )
         text = re.sub(r'filename="(?!/)([^"]+)"', lambda m: f'filename="{(path.parent / m.group(1)).resolve()}"', text)
+        missing = [f for f in re.findall(r'filename="([^"]+)"', text) if not Path(f).is_file()]
+        if missing:
+            raise SceneError(f"robot file {path}: mesh file {missing[0]} not found ({len(missing)} missing)")
         compiler = '<mujoco><compiler discardvisual="true" balanceinertia="true" fusestatic="false"/></mujoco>'
         text = re.sub(r"(<robot[^>]*>)", r"\1" + compiler, text, count=1)
-        return mujoco.MjSpec.from_string(text)
-    return mujoco.MjSpec.from_file(str(path))
+        return _parse_robot(path, lambda: mujoco.MjSpec.from_string(text))
+    return _parse_robot(path, lambda: mujoco.MjSpec.from_file(str(path)))
+
+
+def _parse_robot(path, parse) -> mujoco.MjSpec:
+    try:
+        return parse()
+    except ValueError as e:  # MuJoCo's parser: bad XML, a missing mesh of an MJCF, ...
+        raise SceneError(f"robot file {path}: MuJoCo cannot load it: {' '.join(str(e).split())}") from None
 
 
 DEFAULT_SUBSTEPS = {"implicit": 1, "explicit": 4}
@@ -217,8 +293,41 @@ class Scene:
     contact_budget: int | None = None
 
     def __post_init__(self):
-        if self.substeps is None and self.integrator in DEFAULT_SUBSTEPS:
-            object.__setattr__(self, "substeps", DEFAULT_SUBSTEPS[self.integrator])
+        V.choice(self.integrator, "integrator", SceneError, DEFAULT_SUBSTEPS)
+        V.choice(self.force_mode, "force_mode", SceneError, ("points", "centroid"))
+        if self.substeps is None:
+            _set(self, "substeps", DEFAULT_SUBSTEPS[self.integrator])
+        _set(self, "substeps", V.integer(self.substeps, "substeps", SceneError, low=1))
+        _set(self, "timestep", V.positive(self.timestep, "timestep", SceneError))
+        _set(self, "duration", V.positive(self.duration, "duration", SceneError))
+        _set(self, "gravity", V.vector(self.gravity, "gravity", SceneError, 3))
+        if self.ground_height is not None:
+            _set(self, "ground_height", V.number(self.ground_height, "ground height", SceneError))
+        _set(self, "ground_normal", V.vector(self.ground_normal, "ground normal", SceneError, 3, nonzero=True))
+        for key, kind in (("bodies", DanoBody), ("primitives", Primitive)):
+            items = tuple(getattr(self, key))
+            wrong = [type(x).__name__ for x in items if not isinstance(x, kind)]
+            if wrong:
+                raise SceneError(f"{key} must hold {kind.__name__}s, got {wrong[0]}")
+            _set(self, key, items)
+        names = [b.name for b in self.bodies] + [p.name for p in self.primitives]
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        if duplicates or "ground" in names:
+            which = f"{duplicates} appear more than once" if duplicates else "'ground' names the ground"
+            raise SceneError(f"body and primitive names must be unique and not 'ground': {which}")
+        if not isinstance(self.contact, ContactParams):
+            raise SceneError(f"contact must be a ContactParams, got {type(self.contact).__name__}")
+        pair_contact = tuple(self.pair_contact)
+        for key, value in pair_contact:
+            if not (isinstance(key, tuple) and len(key) == 2 and all(isinstance(k, str) for k in key)):
+                raise SceneError(f"pair_contact keys are (dano name, other name), got {key!r}")
+            if not isinstance(value, ContactParams):
+                raise SceneError(f"pair_contact {key}: must be a ContactParams, got {type(value).__name__}")
+        _set(self, "pair_contact", pair_contact)
+        if self.robot is not None and not isinstance(self.robot, Robot):
+            raise SceneError(f"robot must be a Robot (dano.sim.Robot, dano.sim.panda()), got {type(self.robot)}")
+        if self.contact_budget is not None:
+            _set(self, "contact_budget", V.integer(self.contact_budget, "contact_budget", SceneError, low=1))
 
     @property
     def n_steps(self) -> int:
@@ -426,8 +535,6 @@ def _mj_size(p: Primitive) -> list[float]:
 def _budget(scene: Scene, body: DanoBody) -> int:
     n = body.dano.n_points
     k = scene.contact_budget
-    if k is not None and (isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1):
-        raise SceneError(f"contact_budget must be a whole number of points >= 1 or None, got {k!r}")
     if k is None:
         k = active.budget(np.asarray(body.dano.body_points).T, np.asarray(body.dano.normals).T)
     return min(int(k), n)
@@ -440,9 +547,6 @@ def compile_scene(scene: Scene):
         (mj_model, world, params, qpos0, qvel0): the `mujoco.MjModel` (use `mjx.put_model`), the
         static world, default parameters, and the initial state arrays.
     """
-    names = [b.name for b in scene.bodies] + [p.name for p in scene.primitives]  # robot links are named by it
-    if len(set(names)) != len(names) or "ground" in names:
-        raise ValueError(f"body names must be unique and not 'ground', got {names}")
     if len(scene.bodies) > 1:
         blind = [b.name for b in scene.bodies if b.field is None and b.dano.grid is None]
         if blind:
@@ -472,7 +576,10 @@ def compile_scene(scene: Scene):
         _add_dano(spec, body)
     for p in scene.primitives:
         _add_primitive(spec, p)
-    model = spec.compile()
+    try:
+        model = spec.compile()
+    except ValueError as e:  # e.g. a robot link named like a DANO
+        raise SceneError(f"MuJoCo cannot compile the scene: {' '.join(str(e).split())}") from None
     for body in scene.bodies:
         _set_moments(model, model.body(body.name).id, np.asarray(body.dano.inertia))
 
@@ -530,7 +637,8 @@ def compile_scene(scene: Scene):
         integrator=scene.integrator,
         fallback_slot=model.nuserdata - 1,
     )
-    overrides = dict(scene.pair_contact)
+    overrides = _pair_overrides(scene, world)
+    _check_start(scene, world, overrides)
     params = Params(
         contact=tuple(overrides.get(pair_name(world, pr), scene.contact) for pr in pairs(world)),
         mass_scale=jnp.ones(len(danos)),
@@ -551,6 +659,59 @@ def compile_scene(scene: Scene):
             qpos[model.jnt_qposadr[j]] = value
         _check_servo_damping(model, qpos)
     return model, world, params, qpos, qvel
+
+
+def _pair_overrides(scene: Scene, world: World) -> dict[tuple[str, str], ContactParams]:
+    """`scene.pair_contact` keyed as `pair_name` names the pairs; a pair given in the other order is
+    the same pair. A pair that names no contact pair of the scene is an error, not ignored."""
+    known = {pair_name(world, pr) for pr in pairs(world)}
+    out: dict[tuple[str, str], ContactParams] = {}
+    for (a, b), params in scene.pair_contact:
+        key = (a, b) if (a, b) in known else (b, a)
+        if key not in known:
+            hint = ", ".join(f"{x}/{y}" for x, y in sorted(known)) or "none (contact is off)"
+            raise SceneError(f"pair {a}/{b} is not a contact pair of this scene (its pairs: {hint})")
+        if key in out:
+            raise SceneError(f"pair {a}/{b} is given more than once")
+        out[key] = params
+    return out
+
+
+START_DEPTH = 0.003
+"""m: how deep below the ground a DANO's deepest surface point may start, beyond the spring's own
+rest depth (5 g / k). Deeper, the contact spring throws it out (1 cm deep: 4.5 m/s)."""
+
+
+def _check_start(scene: Scene, world: World, overrides: dict) -> None:
+    """Refuses initial states the contact cannot resolve: a DANO started inside the ground, or moving
+    so fast that it crosses its own size in one step (it would tunnel through what it should hit)."""
+    dt = scene.timestep / scene.substeps
+    for body, state in zip(scene.bodies, world.danos, strict=True):
+        reach = state.reach
+        speed = float(np.linalg.norm(body.vel))
+        if speed * dt > reach:
+            raise SceneError(
+                f"body {body.name!r} starts at {speed:g} m/s, moving {speed * dt:.3g} m per step of {dt:g} s, more "
+                f"than its own radius {reach:.3g} m: lower its speed or the time step"
+            )
+        spin = float(np.linalg.norm(body.angvel))
+        if spin * dt > 1.0:
+            raise SceneError(f"body {body.name!r} starts spinning at {spin:g} rad/s, over 1 rad per step of {dt:g} s")
+        if scene.ground_height is None:
+            continue
+        n = np.asarray(world.ground_normal)
+        R = np.zeros(9)
+        mujoco.mju_quat2Mat(R, np.asarray(body.quat) / np.linalg.norm(body.quat))
+        points = np.asarray(state.points).T @ R.reshape(3, 3).T + np.asarray(body.pos)
+        depth = float(scene.ground_height - np.min(points @ n))
+        spring = float(overrides.get((body.name, "ground"), scene.contact).impact_spring)
+        allowed = START_DEPTH + 5 * float(np.linalg.norm(scene.gravity)) / max(spring, 1e-12)
+        if depth > allowed:
+            lift = depth + float(np.asarray(body.pos) @ n) - scene.ground_height
+            raise SceneError(
+                f"body {body.name!r} starts {depth * 1e3:.3g} mm inside the ground (at most {allowed * 1e3:.2g} mm "
+                f"allowed): start its centre at least {lift:.4g} m above the ground (along its normal)"
+            )
 
 
 def _prepare_robot(spec: mujoco.MjSpec, robot: Robot) -> list[str]:
@@ -655,31 +816,67 @@ def _set_free(model, qpos, qvel, a, v, pos, quat, vel, angvel) -> None:
     qvel[v + 3 : v + 6] = R.reshape(3, 3).T @ np.asarray(angvel, dtype=float)  # MuJoCo: body frame
 
 
-_SIM_KEYS = {"timestep", "duration", "gravity", "substeps", "force_mode", "integrator", "contact_budget"}
-_BODY_KEYS = {"name", "dano", "pos", "quat", "vel", "angvel", "mass"}
-_PRIM_KEYS = {"name", "type", "size", "pos", "quat", "mode", "mass", "vel", "angvel"}
-_CONTACT_KEYS = {f.name for f in dataclasses.fields(ContactParams)}
+def _vec(n: int | None = None, nonzero: bool = False):
+    def check(value, name):
+        count = len(value) if n is None and isinstance(value, list) else (n or 1)
+        return V.vector(value, name, SceneError, count, nonzero=nonzero)
+
+    return check
 
 
-def _check_keys(table: dict, allowed: set[str], where: str, path) -> None:
-    unknown = sorted(set(table) - allowed)
+def _num(**kw):
+    return lambda value, name: V.number(value, name, SceneError, **kw)
+
+
+def _choice(options):
+    return lambda value, name: V.choice(value, name, SceneError, options)
+
+
+_name = lambda value, name: V.text(value, name, SceneError)  # noqa: E731
+_positive = _num(low=0.0, strict=True)
+_POSE = {"pos": _vec(3), "quat": _vec(4, nonzero=True), "vel": _vec(3), "angvel": _vec(3)}
+_SCHEMA = {
+    "sim": {
+        "timestep": _positive, "duration": _positive, "gravity": _vec(3),
+        "substeps": lambda v, n: V.integer(v, n, SceneError, low=1),
+        "force_mode": _choice(("points", "centroid")), "integrator": _choice(DEFAULT_SUBSTEPS),
+        "contact_budget": lambda v, n: V.integer(v, n, SceneError, low=1),
+    },
+    "ground": {"height": _num(), "normal": _vec(3, nonzero=True)},
+    "body": {"name": _name, "dano": _name, "mass": _positive, **_POSE},
+    "primitive": {
+        "name": _name, "type": _choice(SIZES), "size": _vec(), "mode": _choice(("static", "free", "mocap", "actuated")),
+        "mass": _positive, **_POSE,
+    },
+    "contact": {f.name: _num() for f in dataclasses.fields(ContactParams)},
+}  # fmt: skip
+"""Each TOML table's keys and their checks (the same `dano.validate` checks the classes run)."""
+_SCHEMA["pair"] = {"a": _name, "b": _name, **_SCHEMA["contact"]}
+
+
+def _read(table, kind: str, where: str, path, required: tuple[str, ...] = ()) -> dict:
+    """A TOML table checked against `_SCHEMA[kind]`: no unknown or missing keys, every value of
+    the right type and range, normalised (floats, tuples); errors name the file and the table."""
+    if not isinstance(table, dict):
+        raise SceneError(f"{path}: {where} must be a table, got {table!r}")
+    schema = _SCHEMA[kind]
+    unknown = sorted(set(table) - set(schema))
     if unknown:
-        raise SceneError(f"{path}: unknown key(s) {unknown} in {where}; allowed: {sorted(allowed)}")
-
-
-def _contact(table: dict, base: ContactParams, where: str, path) -> ContactParams:
-    _check_keys(table, _CONTACT_KEYS, where, path)
-    try:
-        return dataclasses.replace(base, **{k: float(v) for k, v in table.items()})
-    except (TypeError, ValueError) as e:
-        raise SceneError(f"{path}: bad value in {where}: {e}") from None
+        raise SceneError(f"{path}: unknown key(s) {unknown} in {where}; allowed: {sorted(schema)}")
+    missing = [k for k in required if k not in table]
+    if missing:
+        raise SceneError(f"{path}: {where} needs {' and '.join(repr(k) for k in missing)}")
+    return {key: _located(path, where, lambda k=key: schema[k](table[k], k)) for key in table}
 
 
 def load_scene(path) -> Scene:
     """Reads a scene TOML file (format in README); `dano` paths are relative to the file.
 
+    Every value is checked here, before any work, with the checks the Python classes run (`Scene`,
+    `DanoBody`, `Primitive`, `ContactParams`); errors name the file, the table and the key.
+
     Raises:
-        SceneError: unknown keys, bad values, or a missing DANO file.
+        SceneError: unknown or missing keys, bad types or values, no bodies, a missing DANO file.
     """
     import tomllib
     from pathlib import Path
@@ -690,62 +887,60 @@ def load_scene(path) -> Scene:
     path = Path(path)
     try:
         doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         raise SceneError(f"{path}: no such file") from None
+    except UnicodeDecodeError:
+        raise SceneError(f"{path}: not a text file") from None
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML ({e})") from None
-    _check_keys(doc, {"sim", "ground", "body", "primitive", "contact", "pair"}, "the top level", path)
-    sim = doc.get("sim", {})
-    _check_keys(sim, _SIM_KEYS, "[sim]", path)
-    contact = _contact(doc.get("contact", {}), ContactParams(), "[contact]", path)
+    unknown = sorted(set(doc) - {"sim", "ground", "body", "primitive", "contact", "pair"})
+    if unknown:
+        raise SceneError(f"{path}: unknown table(s) {unknown}; allowed: body, contact, ground, pair, primitive, sim")
+    sim = _read(doc.get("sim", {}), "sim", "[sim]", path)
+    values = _read(doc.get("contact", {}), "contact", "[contact]", path)
+    contact = _located(path, "[contact]", lambda: dataclasses.replace(ContactParams(), **values))
     bodies = []
-    for i, b in enumerate(doc.get("body", [])):
-        _check_keys(b, _BODY_KEYS, f"[[body]] #{i + 1}", path)
-        if "name" not in b or "dano" not in b:
-            raise SceneError(f"{path}: [[body]] #{i + 1} needs 'name' and 'dano'")
+    for i, table in enumerate(_tables(doc, "body", path)):
+        where = f"[[body]] #{i + 1}"
+        b = _read(table, "body", where, path, required=("name", "dano"))
         try:
-            obj = load_dano(path.parent / b["dano"])
-            obj = obj.with_mass(float(b["mass"])) if "mass" in b else obj
+            obj = load_dano(path.parent / b.pop("dano"))
+            obj = obj.with_mass(b.pop("mass")) if "mass" in b else obj
+            bodies.append(DanoBody(b.pop("name"), obj, **b))
         except DanoError as e:
-            raise SceneError(f"{path}: [[body]] {b['name']!r}: {e}") from None
-        kw = {k: tuple(float(x) for x in b[k]) for k in ("pos", "quat", "vel", "angvel") if k in b}
-        bodies.append(DanoBody(b["name"], obj, **kw))
+            raise SceneError(f"{path}: {where}: {e}") from None
     prims = []
-    for i, p in enumerate(doc.get("primitive", [])):
-        _check_keys(p, _PRIM_KEYS, f"[[primitive]] #{i + 1}", path)
-        kw = {k: tuple(float(x) for x in p[k]) for k in ("size", "pos", "quat", "vel", "angvel") if k in p}
-        mode, mass = p.get("mode", "static"), float(p.get("mass", 1.0))
-        prims.append(Primitive(p["name"], p["type"], mode=mode, mass=mass, **kw))
+    for i, table in enumerate(_tables(doc, "primitive", path)):
+        where = f"[[primitive]] #{i + 1}"
+        p = _read(table, "primitive", where, path, required=("name", "type", "size"))
+        prims.append(_located(path, where, lambda p=p: Primitive(p.pop("name"), p.pop("type"), p.pop("size"), **p)))
     pair_contact = []
-    for i, p in enumerate(doc.get("pair", [])):
-        if "a" not in p or "b" not in p:
-            raise SceneError(f"{path}: [[pair]] #{i + 1} needs 'a' (a DANO) and 'b' (another body or 'ground')")
-        rest = {k: v for k, v in p.items() if k not in ("a", "b")}
-        pair_contact.append(((p["a"], p["b"]), _contact(rest, contact, f"[[pair]] #{i + 1}", path)))
-    ground = doc.get("ground")
-    if ground is not None:
-        _check_keys(ground, {"height", "normal"}, "[ground]", path)
-    default = Scene()
-    integrator = _integrator(sim.get("integrator", default.integrator), path)
-    substeps = sim.get("substeps", DEFAULT_SUBSTEPS[integrator])
-    return Scene(
-        timestep=float(sim.get("timestep", default.timestep)),
-        substeps=int(substeps),
-        duration=float(sim.get("duration", default.duration)),
-        gravity=tuple(float(g) for g in sim.get("gravity", default.gravity)),  # type: ignore[arg-type]
-        ground_height=None if ground is None else float(ground.get("height", 0.0)),
-        ground_normal=tuple(float(v) for v in (ground or {}).get("normal", (0.0, 0.0, 1.0))),  # type: ignore[arg-type]
-        bodies=tuple(bodies),
-        primitives=tuple(prims),
-        contact=contact,
-        pair_contact=tuple(pair_contact),
-        force_mode=sim.get("force_mode", default.force_mode),
-        integrator=integrator,
-        contact_budget=sim.get("contact_budget", default.contact_budget),
-    )
+    for i, table in enumerate(_tables(doc, "pair", path)):
+        where = f"[[pair]] #{i + 1}"
+        p = _read(table, "pair", where, path, required=("a", "b"))
+        key = (p.pop("a"), p.pop("b"))
+        pair_contact.append((key, _located(path, where, lambda p=p: dataclasses.replace(contact, **p))))
+    if not bodies:
+        raise SceneError(f"{path}: no [[body]]: a scene needs at least one DANO")
+    kw = dict(sim, bodies=tuple(bodies), primitives=tuple(prims), contact=contact, pair_contact=tuple(pair_contact))
+    if "ground" in doc:
+        ground = _read(doc["ground"], "ground", "[ground]", path)
+        kw.update(ground_height=ground.get("height", 0.0), ground_normal=ground.get("normal", (0.0, 0.0, 1.0)))
+    else:
+        kw["ground_height"] = None
+    return _located(path, None, lambda: Scene(**kw))
 
 
-def _integrator(value, path) -> str:
-    if value not in ("explicit", "implicit"):
-        raise SceneError(f'{path}: [sim] integrator must be "explicit" or "implicit", got {value!r}')
+def _tables(doc: dict, key: str, path) -> list:
+    value = doc.get(key, [])
+    if not isinstance(value, list):
+        raise SceneError(f"{path}: {key} must be written as [[{key}]] tables")
     return value
+
+
+def _located(path, where: str | None, make):
+    """`make()`, with a `SceneError` from the classes' own checks prefixed by file and table."""
+    try:
+        return make()
+    except InvalidValueError as e:
+        raise SceneError(f"{path}: {where}: {e}" if where else f"{path}: {e}") from None

@@ -803,7 +803,7 @@ def _atomic_folder(out_dir: str | Path, overwrite: bool) -> Iterator[Path]:
     """Yields a temporary folder beside `out_dir`, renamed onto it if the block succeeds, else removed."""
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
-        raise VisionDataError(f"{out_dir}: already exists (pass overwrite=True to replace it)")
+        raise VisionDataError(f"{out_dir}: already exists (--overwrite, or overwrite=True, replaces it)")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=out_dir.parent, prefix=f".{out_dir.name}.", suffix=".tmp"))
     try:
