@@ -101,7 +101,7 @@ def load_dano(path: str | Path) -> DANO:
     data = load_npz(path, required=("format", "version"))
     if str(data["format"]) != FORMAT:
         raise DanoFileError(f"{path}: format is {str(data['format'])!r}, expected {FORMAT!r}")
-    if data["version"].shape != () or int(data["version"]) not in READABLE:
+    if data["version"].shape != () or data["version"].dtype.kind not in "iu" or int(data["version"]) not in READABLE:
         raise DanoFileError(f"{path}: format version {data['version']} is not supported (this dano reads {READABLE})")
     missing = [k for k in _ARRAYS if k not in data]
     if missing:
@@ -123,6 +123,9 @@ def load_dano(path: str | Path) -> DANO:
 def _optional(path, data: dict[str, np.ndarray]) -> dict:
     """The optional version-2 arrays, checked."""
     extra: dict = {}
+    for name in ("peak", "grid", "grid_bounds"):
+        if name in data and data[name].dtype.kind not in "fiu":
+            raise DanoFileError(f"{path}: array {name!r} must be numbers, got {data[name].dtype}")
     if "peak" in data:
         if data["peak"].shape != () or not (np.isfinite(data["peak"]) and data["peak"] > 0):
             raise DanoFileError(f"{path}: 'peak' must be a positive number")

@@ -109,11 +109,13 @@ def text(value: Any, name: str, error: Error) -> str:
 def inertia_tensor(inertia: Any, name: str, error: Error) -> np.ndarray:
     """A finite, symmetric, positive definite 3x3 inertia tensor. (The triangle inequality of the
     principal moments is not required: the paper authors' reference DANOs break it slightly.)"""
-    tensor = np.asarray(inertia, dtype=float)
+    given = np.asarray(inertia)
+    eps = float(np.finfo(given.dtype).eps) if given.dtype.kind == "f" else float(np.finfo(float).eps)
+    tensor = given.astype(float)
     if tensor.shape != (3, 3) or not np.all(np.isfinite(tensor)):
         raise error(_named(name) + "must be a finite 3x3 matrix")
     scale = float(np.max(np.abs(tensor)))
-    if not scale > 0 or not np.allclose(tensor, tensor.T, rtol=0, atol=1e-9 * scale):
+    if not scale > 0 or not np.allclose(tensor, tensor.T, rtol=0, atol=1e3 * eps * scale):
         raise error(_named(name) + "must be symmetric and non-zero")
     moments = np.linalg.eigvalsh(tensor)
     if moments[0] <= 0:

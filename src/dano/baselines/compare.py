@@ -25,6 +25,7 @@ import trimesh
 
 from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, mujoco_mesh_spec, outward
 from dano.errors import DanoError
+from dano.extras import require
 from dano.fields import AbstractField
 from dano.types import DANO
 
@@ -132,6 +133,8 @@ def mesh_model(
         pieces, seconds = [mesh], 0.0
     else:
         start = time.perf_counter()
+        if len(mesh.faces) > max_faces:
+            require("fast_simplification", "decimating a mesh before its decomposition")
         coarse = mesh.simplify_quadric_decimation(face_count=max_faces) if len(mesh.faces) > max_faces else mesh
         decimation = time.perf_counter() - start
         pieces, seconds = decompose(coarse, decomposition, threshold, max_hulls, cache_dir, progress)

@@ -19,6 +19,7 @@ import trimesh
 from tqdm.auto import tqdm
 
 from dano.errors import MeshError
+from dano.extras import require
 from dano.fields import AbstractField
 from dano.fields.base import evaluate
 from dano.fields.grid import grid_nodes
@@ -40,7 +41,7 @@ def level_set_mesh(field: AbstractField, level: float, resolution: int = 100) ->
     Raises:
         MeshError: no surface at that level (it is above the field's maximum or not positive).
     """
-    from skimage.measure import marching_cubes
+    marching_cubes = require("skimage.measure", "marching cubes (the mesh path)").marching_cubes
 
     if not level > 0:
         raise MeshError(f"the level must be a positive density, got {level}")
@@ -148,15 +149,13 @@ def decompose(
 
 
 def _coacd(mesh: trimesh.Trimesh, threshold: float, max_hulls: int):
-    import coacd
-
+    coacd = require("coacd", "CoACD convex decomposition")
     coacd.set_log_level("error")
     return coacd.run_coacd(coacd.Mesh(mesh.vertices, mesh.faces), threshold=threshold, max_convex_hull=max_hulls)
 
 
 def _vhacd(mesh: trimesh.Trimesh, threshold: float, max_hulls: int):
-    import vhacdx
-
+    vhacdx = require("vhacdx", "V-HACD convex decomposition")
     return vhacdx.compute_vhacd(
         np.ascontiguousarray(mesh.vertices, dtype=np.float64), np.ascontiguousarray(mesh.faces, dtype=np.uint32),
         maxConvexHulls=64 if max_hulls < 1 else max_hulls, minimumVolumePercentErrorAllowed=100 * threshold,

@@ -193,13 +193,15 @@ def panda(base_pos: Vec3 = (0.0, 0.0, 0.0), qpos: tuple[Number, ...] = (), **kwa
     from importlib.metadata import PackageNotFoundError, distribution
     from pathlib import Path
 
+    from dano.extras import MissingExtraError
+
     try:
         root = Path(str(distribution("example-robot-data").locate_file("cmeel.prefix/share/example-robot-data")))
     except PackageNotFoundError:
-        raise SceneError("the Panda comes from example-robot-data: pip install example-robot-data") from None
+        raise MissingExtraError('the Panda comes from example-robot-data: pip install "dano[robots]"') from None
     path = root / "robots" / "panda_description" / "urdf" / "panda.urdf"
     if not path.is_file():
-        raise SceneError(f"the Panda URDF is not at {path}: pip install example-robot-data")
+        raise MissingExtraError(f'the Panda URDF is not at {path}: pip install "dano[robots]"')
     return Robot(str(path), base_pos=base_pos, qpos=qpos, package_dirs=(("example-robot-data", str(root)),), **kwargs)
 
 
