@@ -280,3 +280,18 @@ def test_json_output_is_the_only_thing_on_stdout(folder):
     out = subprocess.run([sys.executable, "-m", "dano.cli", "info", str(folder / "ball.dano.npz"), "--json"],
                          capture_output=True, text=True, check=True)  # fmt: skip
     assert json.loads(out.stdout)["n_points"] == 300
+
+
+def test_a_blow_up_names_the_body_and_the_step(ball):
+    """With the inputs checked up front, what is left to blame is the step: the report names the
+    frame, the body whose speed ran away, and the step (a NaN planted in a real trajectory)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from dano.sim.run import Simulation, SimulationError, check_trajectory
+
+    sim = Simulation.from_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 1)),)))
+    traj = sim.run(3)
+    broken = eqx.tree_at(lambda t: t.qvel, traj, jnp.asarray(traj.qvel).at[2, 4].set(jnp.nan))
+    with pytest.raises(SimulationError, match=r"frame 2 \(t = 0.004 s\): body 'ball' reached inf .* step of 0.002 s"):
+        check_trajectory(broken, sim.scene, sim.world)

@@ -25,7 +25,7 @@ from dano.contact.pairs import occupancy, world_points
 from dano.errors import DanoError
 from dano.io import atomic_write
 from dano.math import quat_to_mat
-from dano.sim.scene import Scene, compile_scene, pair_name, pairs
+from dano.sim.scene import Scene, World, compile_scene, pair_name, pairs
 from dano.sim.step import Trajectory, dano_bodies, dano_frames, partners, rollout
 
 
@@ -80,7 +80,7 @@ class Simulation:
         traj = fn(params, self.data, ctrl, mocap_pos, external)
         if ctrl is None and mocap_pos is None and external is None:
             audit_energy(traj, self, params)  # first: the energy grows before the state blows up
-        check_trajectory(traj, self.scene)
+        check_trajectory(traj, self.scene, self.world)
         _warn_fallbacks(traj, self.world)
         return traj
 
@@ -98,7 +98,7 @@ class Simulation:
             self._compiled[key] = jax.jit(go, compiler_options=compiler_options(self.world))
         traj = self._compiled[key](self.params if params is None else params, shard_batch(data))
         for i in range(traj.qpos.shape[0]):
-            check_trajectory(jax.tree_util.tree_map(lambda x, i=i: x[i], traj), self.scene)
+            check_trajectory(jax.tree_util.tree_map(lambda x, i=i: x[i], traj), self.scene, self.world)
         _warn_fallbacks(traj, self.world)
         return traj
 
@@ -221,18 +221,36 @@ def compiler_options(world) -> dict | None:
     return None
 
 
-def check_trajectory(traj: Trajectory, scene: Scene) -> None:
-    """Raises `SimulationError` at the first frame with a non-finite state or a runaway speed."""
+def check_trajectory(traj: Trajectory, scene: Scene, world: World | None = None) -> None:
+    """Raises `SimulationError` at the first frame with a non-finite state or a runaway speed,
+    naming the degree of freedom (a DANO by name, or MuJoCo's index) and the likely cause.
+
+    The scene's inputs were checked before simulating (no negative or NaN parameter, no zero
+    quaternion, no start inside the ground or faster than a body's size per step, a positive
+    definite inertia), so what is left is the step against the contact's stiffness."""
     qpos, qvel = np.asarray(traj.qpos), np.asarray(traj.qvel)
     bad = ~np.all(np.isfinite(qpos), axis=1) | ~np.all(np.isfinite(qvel), axis=1)
     bad |= np.max(np.abs(np.nan_to_num(qvel, nan=np.inf)), axis=1) > MAX_SPEED
-    if bad.any():
-        frame = int(np.argmax(bad))
-        raise SimulationError(
-            f"the simulation blew up at frame {frame} (t = {frame * scene.timestep:.4g} s): the time step "
-            f"{scene.timestep / scene.substeps:.3g} s is likely too large for the contact spring/damper; "
-            "raise substeps or lower impact_spring / impact_damper"
-        )
+    if not bad.any():
+        return
+    frame = int(np.argmax(bad))
+    speeds = np.abs(np.nan_to_num(qvel[frame], nan=np.inf))
+    dof = int(np.argmax(speeds))
+    owner = f"degree of freedom {dof}"
+    for name, start in zip(world.names, world.dano_qvel, strict=True) if world is not None else ():
+        if start <= dof < start + 6:
+            owner = f"body {name!r}"
+    h = scene.timestep / scene.substeps
+    advice = (
+        "raise substeps or lower impact_spring / impact_damper (the explicit step needs ~0.5 ms at Table I's stiff "
+        'corners), or use integrator = "implicit"'
+        if scene.integrator == "explicit"
+        else "lower the time step (substeps) or the contact stiffness, or check the robot's servo gains and forces"
+    )
+    raise SimulationError(
+        f"the simulation blew up at frame {frame} (t = {frame * scene.timestep:.4g} s): {owner} reached "
+        f"{speeds[dof]:.3g} (m/s or rad/s; limit {MAX_SPEED:g}) at a step of {h:.3g} s; {advice}"
+    )
 
 
 def driven(sim: Simulation) -> bool:
@@ -362,7 +380,7 @@ def at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
     above the table, they come to rest), so pushes start from a true equilibrium."""
     sim = Simulation.from_scene(dataclasses.replace(scene, duration=seconds))
     traj = sim.run()
-    check_trajectory(traj, sim.scene)
+    check_trajectory(traj, sim.scene, sim.world)
     poses = body_poses(traj, sim)
     bodies = tuple(
         dataclasses.replace(b, pos=tuple(float(v) for v in poses[b.name][-1, :3]),
