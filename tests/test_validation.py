@@ -295,3 +295,39 @@ def test_a_blow_up_names_the_body_and_the_step(ball):
     broken = eqx.tree_at(lambda t: t.qvel, traj, jnp.asarray(traj.qvel).at[2, 4].set(jnp.nan))
     with pytest.raises(SimulationError, match=r"frame 2 \(t = 0.004 s\): body 'ball' reached inf .* step of 0.002 s"):
         check_trajectory(broken, sim.scene, sim.world)
+
+
+def test_identification_guesses_and_bounds_accept_aliases_and_refuse_what_is_not_fitted():
+    from dano.sysid.problem import SysidError
+    from dano.sysid.solve import by_canonical_name, resolve_bounds
+
+    names = ("sliding_friction", "mass_scale")
+    assert by_canonical_name({"friction": 0.2, "alpha": 2.0}, names, "init") == {"sliding_friction": 0.2,
+                                                                                 "mass_scale": 2.0}  # fmt: skip
+    with pytest.raises(SysidError, match="init names 'rolling_friction', which is not fitted"):
+        by_canonical_name({"rolling_friction": 0.1}, names, "init")
+    with pytest.raises(SysidError, match="twice"):
+        by_canonical_name({"friction": 0.1, "mu": 0.2}, names, "init")
+    with pytest.raises(SysidError, match="unknown parameter 'frcition'"):
+        by_canonical_name({"frcition": 0.1}, names, "init")
+    lo, hi = resolve_bounds(names, {"mu": (0.1, 0.4)})
+    assert (lo[0], hi[0]) == (0.1, 0.4)
+
+
+def test_a_track_stored_one_row_per_coordinate_is_read_as_its_transpose(tmp_path):
+    from dano.sysid.data import TrackFileError, read_tracks
+
+    t = np.arange(5) * 0.01
+    rows = {"t": t, "x": 0.1 * t, "y": 0 * t, "z": 0 * t + 0.02, "qw": 1 + 0 * t, "qx": 0 * t, "qy": 0 * t, "qz": 0 * t}
+    by_frame = tmp_path / "frames.csv"
+    by_frame.write_text(",".join(rows) + "\n" + "".join(",".join(f"{v[k]:g}" for v in rows.values()) + "\n"
+                                                       for k in range(5)))  # fmt: skip
+    by_coordinate = tmp_path / "coordinates.csv"
+    by_coordinate.write_text("".join(f"{name}," + ",".join(f"{x:g}" for x in v) + "\n" for name, v in rows.items()))
+    a, b = read_tracks(by_frame)[""], read_tracks(by_coordinate)[""]
+    np.testing.assert_array_equal(a.pos, b.pos)
+    np.testing.assert_array_equal(a.t, b.t)
+    numbers_only = tmp_path / "numbers.csv"
+    numbers_only.write_text("".join(",".join(f"{x:g}" for x in v) + "\n" for v in rows.values()))
+    with pytest.raises(TrackFileError, match="line 1: numbers, not column names"):
+        read_tracks(numbers_only)

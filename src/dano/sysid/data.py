@@ -70,8 +70,31 @@ TIMING_TOLERANCE = 0.1
 """Largest allowed deviation of a frame interval from the median, as a fraction of it."""
 
 
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _transposed(rows: list[list[str]]) -> list[list[str]]:
+    """A file stored one row per coordinate (`x,0.1,0.2,...` / `y,...`: 7 x N, as some trackers
+    write) as one row per frame; any other file unchanged."""
+    names = [_ALIASES.get(r[0].strip().lower(), r[0].strip().lower()) if r else "" for r in rows if any(r)]
+    if not (set(_POSE) <= set(names) and len(names) == len(set(names)) and len(names) <= 16):
+        return rows
+    kept = [r for r in rows if any(r)]
+    if len({len(r) for r in kept}) != 1:
+        return rows  # ragged: let the row checks name the line
+    return [list(column) for column in zip(*kept, strict=True)]
+
+
 def read_tracks(path: str | Path, fps: float | None = None) -> dict[str, Track]:
     """Reads a pose CSV into one `Track` per body (key "" when the file has no `body` column).
+
+    A file stored one row per coordinate, each row starting with its name (`x,0.1,0.2,...`), is
+    read as its transpose.
 
     Args:
         path: the CSV file (format in the module docstring).
@@ -88,8 +111,14 @@ def read_tracks(path: str | Path, fps: float | None = None) -> dict[str, Track]:
         raise TrackFileError(f"{path}: cannot read ({e.strerror})") from None
     if not rows:
         raise TrackFileError(f"{path}: empty file")
+    rows = _transposed(rows)
     header = [_ALIASES.get(h.strip().lower(), h.strip().lower()) for h in rows[0]]
     missing = [c for c in _POSE if c not in header]
+    if missing and all(_is_number(h) for h in header if h.strip()):
+        raise TrackFileError(
+            f"{path}, line 1: numbers, not column names: the first line must name the columns "
+            "t,x,y,z,qw,qx,qy,qz (a file with one row per coordinate needs its name first on each row)"
+        )
     if missing:
         raise TrackFileError(f"{path}, line 1: missing column(s) {missing}; need t,x,y,z,qw,qx,qy,qz (or --fps)")
     has_t = "t" in header

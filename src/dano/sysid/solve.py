@@ -22,7 +22,15 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
-from dano.sysid.problem import DEFAULT_BOUNDS, Problem, SysidError, current_values, residuals, window_residuals
+from dano.sysid.problem import (
+    DEFAULT_BOUNDS,
+    Problem,
+    SysidError,
+    canonical,
+    current_values,
+    residuals,
+    window_residuals,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,8 +119,22 @@ def _assemble(p: int, n: int, s: int, parts) -> tuple[float, np.ndarray, np.ndar
     return float(loss), np.concatenate([g_t, g_d.reshape(-1)]), H
 
 
+def by_canonical_name(values: dict | None, names, what: str) -> dict:
+    """`values` keyed by canonical parameter names (`friction` -> `sliding_friction`); a name that
+    is not fitted is an error, not silently ignored (an `init` that names an alias once was)."""
+    out: dict = {}
+    for key, value in (values or {}).items():
+        name = canonical(key)
+        if name not in names:
+            raise SysidError(f"{what} names {key!r}, which is not fitted (fitting {', '.join(names)})")
+        if name in out:
+            raise SysidError(f"{what} gives {name!r} twice (as {key!r} and another name)")
+        out[name] = value
+    return out
+
+
 def resolve_bounds(names, given: dict | None) -> tuple[np.ndarray, np.ndarray]:
-    given = {} if given is None else given
+    given = by_canonical_name(given, names, "bounds")
     lo = np.array([given.get(n, DEFAULT_BOUNDS[n])[0] for n in names], dtype=float)
     hi = np.array([given.get(n, DEFAULT_BOUNDS[n])[1] for n in names], dtype=float)
     bad = ~(lo <= hi) | ~np.isfinite(lo) | ~np.isfinite(hi)
@@ -126,8 +148,9 @@ def initial_guess(problem: Problem, init: dict | None, bounds: dict | None) -> n
     """θ to start from: `init` where given, else the scene's values; clipped into the bounds."""
     lo, hi = resolve_bounds(problem.names, bounds)
     theta = current_values(problem.params, problem.names)
+    init = by_canonical_name(init, problem.names, "init")
     for k, name in enumerate(problem.names):
-        if init is not None and name in init:
+        if name in init:
             value = float(init[name])
             if not np.isfinite(value):
                 raise SysidError(f"the initial guess for {name!r} is not finite")
