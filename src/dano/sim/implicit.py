@@ -23,9 +23,14 @@ the previous one delivered, so it scales with the support that answers friction'
 
 The DANOs' rigid motion is then integrated here, not by MuJoCo: v' gives x; the world angular
 momentum L' = I_w(q) w' is held over the step while the rotation follows it (explicit midpoint on
-SO(3)), so a torque-free body keeps L exactly and its energy to O(h^2). The reactions on MuJoCo
-bodies (free and actuated primitives, robot links) are the same forces with opposite sign, applied
-through `xfrc_applied` before `mjx.step` moves them; a DANO-DANO pair is solved jointly (12 x 12).
+SO(3)), so a torque-free body keeps L exactly and its energy to O(h^2). A DANO-DANO pair is solved jointly (12 x 12), and so is a
+DANO and a free primitive: the primitive's 6 velocities join V with its mass and inertia, its free
+motion V~ under gravity, and MuJoCo is handed the wrench M (V' - V~) / h that takes it to V' (its
+own contacts with other MuJoCo geoms come on top). Held at V~ instead, as a partner moving at a
+known velocity, a light free sphere hitting a DANO gained energy: the reaction, integrated
+explicitly by MuJoCo, was not the force the DANO's solve assumed. The reactions on the other
+MuJoCo bodies (actuated primitives, robot links, driven and so not free) are the pairs' forces with
+opposite sign, applied through `xfrc_applied` before `mjx.step` moves them.
 """
 
 import equinox as eqx
@@ -42,7 +47,17 @@ from dano.contact.pairs import reaction as reaction_of
 from dano.contact.support import Support, dano_support, normal_terms, normal_velocity, overlap, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
 from dano.sim.scene import Params, World, pairs
-from dano.sim.step import dano_bodies, dano_frames, link_motion, mjx_step, partners, scatter
+from dano.sim.step import (
+    Partner,
+    dano_bodies,
+    dano_frames,
+    link_motion,
+    mjx_step,
+    partners,
+    primitive_frame,
+    primitive_shape,
+    scatter,
+)
 
 PASSES = 3
 """Solves per step: the first without friction, each next one with friction at the normal forces
@@ -259,25 +274,41 @@ def implicit_step(
     pair_list = pairs(world)
     kin = link_motion(m, d) if world.links else None
     mates = partners(world, d, mocap_vel, kin)
-    inertia_w = [f.R @ b.inertia @ f.R.T for f, b in zip(frames, bodies, strict=True)]
-    M = _block_diag([blk for b, J in zip(bodies, inertia_w, strict=True) for blk in (b.mass * jnp.eye(3), J)])
+    # The unknowns V: 6 velocities per DANO, then per free primitive (solved jointly, see above).
+    free = tuple(k for k, mode in enumerate(world.prim_mode) if mode == "free")
+    slot = {k: n + s for s, k in enumerate(free)}
+    prim_body = [world.prim_body[k] for k in free]
+    frames_all = list(frames) + [primitive_frame(world, k, d) for k in free]
+    masses = [b.mass for b in bodies] + [m.body_mass[b] for b in prim_body]
+    inertia_body = [b.inertia for b in bodies] + [jnp.diag(m.body_inertia[b]) for b in prim_body]
+    inertia_w = [f.R @ J @ f.R.T for f, J in zip(frames_all, inertia_body, strict=True)]
+    M = _block_diag([blk for mass, J in zip(masses, inertia_w, strict=True) for blk in (mass * jnp.eye(3), J)])
+    n_all = len(frames_all)
+    body_ids = list(world.dano_body) + prim_body
     V_free = []
-    for i, (f, b) in enumerate(zip(frames, bodies, strict=True)):
-        ext = jnp.zeros(6) if external is None else external[world.dano_body[i]]
-        v = f.v + h * (m.opt.gravity + ext[:3] / b.mass)
+    for i, f in enumerate(frames_all):
+        ext = jnp.zeros(6) if external is None else external[body_ids[i]]
+        v = f.v + h * (m.opt.gravity + ext[:3] / masses[i])
         V_free.append(jnp.concatenate([v, f.w + h * jnp.linalg.solve(inertia_w[i], ext[3:])]))
     V_free = jnp.concatenate(V_free)
 
     # The geometry, frozen at the pose the free motion reaches (so a contact that the step would
     # reach acts in that step), and each pair's points' lever arms and partner velocities.
-    start = [_moved(f, h * V_free[6 * i : 6 * i + 6], V_free[6 * i : 6 * i + 6]) for i, f in enumerate(frames)]
+    start = [_moved(f, h * V_free[6 * i : 6 * i + 6], V_free[6 * i : 6 * i + 6]) for i, f in enumerate(frames_all)]
+    # Where each pair's partner sits in V (a DANO or a free primitive), or -1 (moves at a known velocity).
+    other = [
+        mate.dano if mate.dano >= 0 else slot.get(k, -1) if kind == "primitive" else -1
+        for (_, kind, k), mate in zip(pair_list, mates, strict=True)
+    ]
     supports, patches = [], []
-    for p, (i, _, _), mate in zip(params.contact, pair_list, mates, strict=True):
+    for j, (p, (i, _, k), mate) in enumerate(zip(params.contact, pair_list, mates, strict=True)):
         a = start[i]
-        b = start[mate.dano] if mate.dano >= 0 else mate.frame
+        b = start[other[j]] if other[j] >= 0 else mate.frame
+        if other[j] >= 0 and mate.dano < 0:  # a free primitive, at the pose its free motion reaches
+            mate = Partner(b, primitive_shape(world, k, b), mate.body, -1, mate.inv_mass, mate.radius)
         sup = _support(world, p, mate, bodies, i, a, b, h)
         zero = jnp.zeros_like(sup.at)
-        if mate.dano >= 0:
+        if other[j] >= 0:
             patch = Patch(
                 sup.at - a.x[:, None], sup.at - b.x[:, None], zero, jnp.zeros(3), sup.normal, sup.weight, True
             )
@@ -291,17 +322,18 @@ def implicit_step(
         patches.append(patch)
 
     def slots(j) -> list[int]:
-        """Where pair j's velocity vector (V_a, or (V_a, V_b) with a DANO partner) sits in V."""
-        i, mate = pair_list[j][0], mates[j]
-        return list(range(6 * i, 6 * i + 6)) + (list(range(6 * mate.dano, 6 * mate.dano + 6)) if mate.dano >= 0 else [])
+        """Where pair j's velocity vector (V_a, or (V_a, V_b) with a partner in V) sits in V."""
+        i, o = pair_list[j][0], other[j]
+        return list(range(6 * i, 6 * i + 6)) + (list(range(6 * o, 6 * o + 6)) if o >= 0 else [])
 
     def pair_velocity(j, V):
         return V[jnp.asarray(slots(j))]
 
     def scatter_pair(j, g, H):
-        """A pair's gradient (m,) and Hessian (m, m) into the (6n,) and (6n, 6n) of all DANOs."""
+        """A pair's gradient (m,) and Hessian (m, m) into the (6N,) and (6N, 6N) of all unknowns."""
         idx = jnp.asarray(slots(j))
-        return jnp.zeros(6 * n).at[idx].add(g), jnp.zeros((6 * n, 6 * n)).at[idx[:, None], idx[None, :]].add(H)
+        size = 6 * n_all
+        return jnp.zeros(size).at[idx].add(g), jnp.zeros((size, size)).at[idx[:, None], idx[None, :]].add(H)
 
     centroid = world.force_mode == "centroid"  # friction and damper at chi (the spring per point)
 
@@ -383,13 +415,13 @@ def implicit_step(
                 out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
             return out
 
-        total_mass = sum(b.mass for b in bodies)
+        total_mass = sum(masses)
         tol = 1e-20 * total_mass
         # The first friction solve starts from the velocities the step starts with, not from the
         # frictionless answer: a body that friction holds is near them, while without friction it
         # may slip and turn (a resting box: 1.5 mm/s at its face, far out on the Coulomb law's flat
         # part, where Newton needs ~20 damped steps to come back instead of ~4).
-        V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in frames])
+        V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in frames_all])
         sparse_step = any(a is not None for a in actives)
 
         def one_pass(carry, k):
@@ -423,8 +455,11 @@ def implicit_step(
             """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (the pair's force on the DANO
             is -dT/dV_a / h)."""
             xfrc = jnp.zeros_like(d.xfrc_applied)
+            for s, body in enumerate(prim_body):  # a free primitive: the wrench that takes it to V'
+                e = slice(6 * (n + s), 6 * (n + s) + 6)
+                xfrc = scatter(xfrc, body, M[e, e] @ (V_next[e] - V_free[e]) / h)
             for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
-                if mate.body < 0:
+                if mate.body < 0 or other[j] >= 0:
                     continue
                 if sparse_step:  # solved over the active sets, or over all points if they overflowed
 
@@ -460,7 +495,7 @@ def implicit_step(
         d = d.replace(time=d.time + h, xfrc_applied=xfrc)
 
     qpos, qvel = d.qpos, d.qvel
-    V_next = V_next.reshape(n, 6)
+    V_next = V_next[: 6 * n].reshape(n, 6)
     for i, (a, v) in enumerate(zip(world.dano_qpos, world.dano_qvel, strict=True)):
         f, b = frames[i], bodies[i]
         q1, w_body = _rotate(quats[i], f.R, b.inertia, inertia_w[i] @ V_next[i, 3:], h)
