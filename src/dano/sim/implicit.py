@@ -370,8 +370,8 @@ def implicit_step(
         def missed(V) -> Array:
             """Whether a point that the active sets dropped is live at V (`dano.contact.active`)."""
             out = started_over
-            for j, a in enumerate(actives):
-                if a is None:
+            for j, (a, drop) in enumerate(zip(actives, drops, strict=True)):
+                if a is None or drop is None:  # both or neither
                     continue
                 dV = pair_velocity(j, V) - pair_velocity(j, V_free)
 
@@ -379,7 +379,7 @@ def implicit_step(
                     return active.missed(supports[j], patches[j], a, u_n0[j], pair_velocity(j, V), h)
 
                 # the exact check under a once-or-never loop: in a batch, only when some element needs it
-                safe = active.bound_holds(supports[j], drops[j], dV, h)
+                safe = active.bound_holds(supports[j], drop, dV, h)
                 out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
             return out
 
@@ -435,7 +435,11 @@ def implicit_step(
                 else:
                     sets = full()
                     g = pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
-                centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
+                if kind == "link":
+                    assert kin is not None  # `link_motion` ran: the world has links
+                    centre = kin.xipos[mate.body]
+                else:
+                    centre = mate.frame.x
                 xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / h, frames[i].x, centre))
             return xfrc
 

@@ -25,7 +25,7 @@ from dano.contact.pairs import occupancy, world_points
 from dano.errors import DanoError
 from dano.io import atomic_write
 from dano.math import quat_to_mat
-from dano.sim.scene import Scene, compile_scene, pair_name, pairs
+from dano.sim.scene import Params, Scene, World, compile_scene, pair_name, pairs
 from dano.sim.step import Trajectory, dano_bodies, dano_frames, partners, rollout
 
 
@@ -47,11 +47,11 @@ class Simulation:
     """A compiled scene ready to roll out: the MuJoCo model, the MJX model and data, the world."""
 
     scene: Scene
-    model: object
+    model: mujoco.MjModel
     mjx_model: mjx.Model
     data: mjx.Data
-    world: object
-    params: object
+    world: World
+    params: Params
     _compiled: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -225,6 +225,7 @@ def check_trajectory(traj: Trajectory, scene: Scene) -> None:
     bad |= np.max(np.abs(np.nan_to_num(qvel, nan=np.inf)), axis=1) > MAX_SPEED
     if bad.any():
         frame = int(np.argmax(bad))
+        assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
         raise SimulationError(
             f"the simulation blew up at frame {frame} (t = {frame * scene.timestep:.4g} s): the time step "
             f"{scene.timestep / scene.substeps:.3g} s is likely too large for the contact spring/damper; "
@@ -290,6 +291,7 @@ def audit_energy(traj: Trajectory, sim: Simulation, params=None) -> None:
         return
     f = int(np.argmax(gain))
     worst = int(np.argmax(E[f] - E[0]))
+    assert sim.scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     raise SimulationError(
         f"energy from nowhere: at frame {f} (t = {f * sim.scene.timestep:.4g} s) the scene has "
         f"{total[f] - total[0]:+.3g} J more than at the start ({(total[f] - total[0]) / scale:.1%} of its energy "
@@ -372,5 +374,6 @@ def at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
 def at_interval(scene: Scene, dt: float) -> Scene:
     """The scene with one frame per `dt` s, split into substeps no longer than the scene's own
     (`scene.timestep / scene.substeps`: the contact's Jacobian needs them short, see README)."""
+    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     substeps = max(1, int(np.ceil(dt / (scene.timestep / scene.substeps) - 1e-9)))
     return dataclasses.replace(scene, timestep=dt, substeps=substeps)

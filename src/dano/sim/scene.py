@@ -9,7 +9,8 @@ MuJoCo; with DANOs they collide through the DANO contact model.
 """
 
 import dataclasses
-from typing import Literal
+from collections.abc import Callable
+from typing import Any, Literal, cast
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -57,12 +58,12 @@ class DanoBody:
     field: object = None
 
 
-def _contact_field(body: DanoBody):
+def _contact_field(body: DanoBody) -> Callable[[Array], Array] | None:
     """The field a DANO's partners query: the online field if given, else its baked grid."""
     from dano.fields import GridField
 
     if body.field is not None:
-        return body.field
+        return cast(Callable[[Array], Array], body.field)
     if body.dano.grid is None:
         return None
     return GridField(jnp.asarray(body.dano.grid), body.dano.grid_bounds)
@@ -244,7 +245,7 @@ class DanoState(eqx.Module):
     mass: Float[Array, ""]
     inertia: Float[Array, "3 3"]
     com: Float[Array, " 3"]
-    field: object
+    field: Callable[[Array], Array] | None
     peak: Float[Array, ""]
     budget: int = eqx.field(static=True, default=0)
     """points per contact pair that the implicit step solves over (`dano.contact.active`); 0: all."""
@@ -293,7 +294,7 @@ class World(eqx.Module):
     prim_mass: tuple[float, ...] = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
     dt: float = eqx.field(static=True)
-    force_mode: str = eqx.field(static=True)
+    force_mode: Literal["points", "centroid"] = eqx.field(static=True)
     integrator: str = eqx.field(static=True, default="implicit")
     fallback_slot: int = eqx.field(static=True, default=-1)
     """`mjx.Data.userdata` slot counting the steps whose active sets overflowed (-1: none)."""
@@ -452,6 +453,7 @@ def compile_scene(scene: Scene):
             )
     spec = mujoco.MjSpec() if scene.robot is None else _robot_spec(scene.robot)
     robot_bodies = _prepare_robot(spec, scene.robot) if scene.robot is not None else []
+    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     spec.option.timestep = scene.timestep / scene.substeps
     spec.option.gravity = list(scene.gravity)
     if scene.integrator == "implicit":
@@ -708,7 +710,7 @@ def load_scene(path) -> Scene:
             obj = obj.with_mass(float(b["mass"])) if "mass" in b else obj
         except DanoError as e:
             raise SceneError(f"{path}: [[body]] {b['name']!r}: {e}") from None
-        kw = {k: tuple(float(x) for x in b[k]) for k in ("pos", "quat", "vel", "angvel") if k in b}
+        kw: dict[str, Any] = {k: tuple(float(x) for x in b[k]) for k in ("pos", "quat", "vel", "angvel") if k in b}
         bodies.append(DanoBody(b["name"], obj, **kw))
     prims = []
     for i, p in enumerate(doc.get("primitive", [])):
@@ -745,7 +747,7 @@ def load_scene(path) -> Scene:
     )
 
 
-def _integrator(value, path) -> str:
+def _integrator(value, path) -> Literal["explicit", "implicit"]:
     if value not in ("explicit", "implicit"):
         raise SceneError(f'{path}: [sim] integrator must be "explicit" or "implicit", got {value!r}')
     return value
