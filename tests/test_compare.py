@@ -65,6 +65,7 @@ def test_low_level_rests_tilted_on_the_floater_while_the_dano_rests_flat(tmp_pat
     truth = C.mesh_model("truth", trimesh.creation.box(SIZE))
     result = C.compare(models, truth)
     low, high, ours = result.rows
+    assert result.truth_outcome is not None
     # Flat box on the floor: its centre 2 cm up; tilted on the floater: 5-7 degrees.
     assert result.truth_outcome.tilt_deg < 0.2
     assert result.truth_outcome.rest[2] == pytest.approx(0.02, abs=1e-3)

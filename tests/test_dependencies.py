@@ -40,11 +40,16 @@ def _floors() -> dict[str, str]:
     specs = list(project["dependencies"])
     for extra in ("baselines", "robots", "test"):
         specs += [s for s in project["optional-dependencies"][extra] if not s.startswith("dano[")]
-    return dict(re.fullmatch(r"([A-Za-z0-9_.-]+)>=([0-9.]+)", s.split(";")[0].strip()).groups() for s in specs)
+    floors: dict[str, str] = {}
+    for spec in specs:
+        match = re.fullmatch(r"([A-Za-z0-9_.-]+)>=([0-9.]+)", spec.split(";")[0].strip())
+        assert match, f"{spec!r}: every dependency states a floor (name>=version)"
+        floors[match.group(1)] = match.group(2)
+    return floors
 
 
 def _tuple(v: str) -> tuple[int, ...]:
-    return tuple(int(re.match(r"\d+", part).group()) for part in v.split(".")[:3])
+    return tuple(int(re.sub(r"\D.*", "", part) or 0) for part in v.split(".")[:3])
 
 
 def test_every_installed_dependency_meets_its_floor():

@@ -6,7 +6,9 @@ import pytest
 
 import dano
 from dano.fields import (
+    BoxField,
     CallableField,
+    CapsuleField,
     GridField,
     NeuralField,
     NeuralFieldConfig,
@@ -94,9 +96,11 @@ def test_user_callable_and_transform():
 
 def test_spec_parsing():
     box = from_spec("box:size=0.1,0.06,0.03,width=0.002")
+    assert isinstance(box, BoxField)
     np.testing.assert_allclose(box.half_size, [0.05, 0.03, 0.015])
     assert float(box.width) == 0.002
     cap = from_spec("capsule:r=0.02,half_length=0.05,peak=800")
+    assert isinstance(cap, CapsuleField)
     assert float(cap.peak) == 800 and float(cap.half_length) == 0.05
     for bad, msg in [("sphere:r=abc", "not a number"), ("sphere:q=1", "unknown key"), ("cone:r=1", "cannot parse"),
                      ("sphere:r=0.01,width=0.05", "exceeds"), ("sphere:r=-1", "positive")]:  # fmt: skip

@@ -5,6 +5,7 @@ message: never a traceback, never a clobbered earlier output.
 Examples are bounded (`max_examples`) and derandomised, so CI runs the same cases every time.
 """
 
+import argparse
 import copy
 import io
 import math
@@ -248,7 +249,8 @@ def test_any_command_line_parses_or_is_a_one_line_usage_error(data, tmp_path):
 
     def stub_parser():
         p = PARSER()
-        for action in p._subparsers._group_actions[0].choices.values():  # every subcommand runs the stub
+        sub = next(a for a in p._actions if isinstance(a, argparse._SubParsersAction))
+        for action in sub.choices.values():  # every subcommand runs the stub
             action.set_defaults(run=ran.append)
         return p
 

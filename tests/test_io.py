@@ -31,13 +31,13 @@ def test_corrupt_and_wrong_version_files(tmp_path, ball):
     path = tmp_path / "b.dano.npz"
     save_dano(path, ball)
     data = dict(np.load(path, allow_pickle=False))
-    np.savez(tmp_path / "v2.npz", **(data | {"version": np.int64(99)}))
+    np.savez(tmp_path / "v2.npz", **{**data, "version": np.int64(99)})
     with pytest.raises(dano.DanoFileError, match="version 99"):
         load_dano(tmp_path / "v2.npz")
-    np.savez(tmp_path / "neg.npz", **(data | {"mass": np.float64(-1.0)}))
+    np.savez(tmp_path / "neg.npz", **{**data, "mass": np.float64(-1.0)})
     with pytest.raises(dano.DanoFileError, match="mass must be positive"):
         load_dano(tmp_path / "neg.npz")
-    np.savez(tmp_path / "nan.npz", **(data | {"com": np.array([np.nan, 0, 0])}))
+    np.savez(tmp_path / "nan.npz", **{**data, "com": np.array([np.nan, 0, 0])})
     with pytest.raises(dano.DanoFileError, match="finite"):
         load_dano(tmp_path / "nan.npz")
     np.savez(tmp_path / "shape.npz", **(data | {"normals": data["normals"][:10]}))

@@ -1,3 +1,5 @@
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -90,7 +92,8 @@ def test_bad_fields_and_masses_raise_named_errors():
         mass_properties(CallableField(lambda x: jnp.full(x.shape[0], jnp.nan), bounds))
     with pytest.raises(dano.FieldError, match="negative"):
         mass_properties(CallableField(lambda x: x[:, 0], bounds))
-    for kwargs in ({"mass": -1.0}, {"alpha": 0.0}, {"mass": float("nan")}):
+    cases: list[dict[str, Any]] = [{"mass": -1.0}, {"alpha": 0.0}, {"mass": float("nan")}]
+    for kwargs in cases:
         with pytest.raises(dano.InvalidMassError):
             mass_properties(SphereField(0.05), **kwargs)
 

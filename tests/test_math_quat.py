@@ -35,7 +35,7 @@ def test_log_and_exp_are_inverse():
     np.testing.assert_allclose(quat_log(q), r, rtol=0, atol=1e-12)
     np.testing.assert_allclose(q, _wxyz(Rotation.from_rotvec(r)) * np.sign(_wxyz(Rotation.from_rotvec(r))[:, :1]))
     # and the other way round, from random quaternions of any norm
-    qs = _wxyz(Rotation.random(200, random_state=1)) * np.random.default_rng(2).uniform(0.2, 5.0, size=(200, 1))
+    qs = _wxyz(Rotation.random(200, random_state=1)) * np.random.default_rng(2).uniform(0.2, 5.0, size=(200, 1))  # pyright: ignore[reportCallIssue]
     back = quat_exp(quat_log(qs))
     unit = qs / np.linalg.norm(qs, axis=1, keepdims=True)
     np.testing.assert_allclose(np.abs(np.sum(np.asarray(back) * unit, axis=1)), 1.0, rtol=1e-13)
@@ -52,8 +52,8 @@ def test_log_and_exp_near_the_series_switch(angle):
 
 
 def test_log_angle_is_the_geodesic_distance():
-    a = _wxyz(Rotation.random(100, random_state=3))
-    b = _wxyz(Rotation.random(100, random_state=4))
+    a = _wxyz(Rotation.random(100, random_state=3))  # pyright: ignore[reportCallIssue]
+    b = _wxyz(Rotation.random(100, random_state=4))  # pyright: ignore[reportCallIssue]
     rel = quat_mul(_conj(a), b)
     angle = np.linalg.norm(quat_log(rel), axis=-1)
     expected = (_scipy(a).inv() * _scipy(b)).magnitude()
@@ -63,15 +63,15 @@ def test_log_angle_is_the_geodesic_distance():
 
 
 def test_log_of_minus_q_is_log_of_q():
-    q = _wxyz(Rotation.random(100, random_state=5)) * np.random.default_rng(6).uniform(0.5, 2.0, size=(100, 1))
+    q = _wxyz(Rotation.random(100, random_state=5)) * np.random.default_rng(6).uniform(0.5, 2.0, size=(100, 1))  # pyright: ignore[reportCallIssue]
     np.testing.assert_allclose(quat_log(-q), quat_log(q), rtol=0, atol=1e-14)
     assert np.any(q[:, 0] < 0) and np.any(q[:, 0] > 0)  # both signs of w were exercised
     np.testing.assert_array_equal(quat_log(jnp.array([-1.0, 0.0, 0.0, 0.0])), jnp.zeros(3))
 
 
 def test_quat_mul_matches_scipy_composition():
-    p = _wxyz(Rotation.random(50, random_state=7))
-    q = _wxyz(Rotation.random(50, random_state=8))
+    p = _wxyz(Rotation.random(50, random_state=7))  # pyright: ignore[reportCallIssue]
+    q = _wxyz(Rotation.random(50, random_state=8))  # pyright: ignore[reportCallIssue]
     pq = np.asarray(quat_mul(p, q))
     expected = _wxyz(_scipy(p) * _scipy(q))  # scipy's p * q: apply q, then p
     np.testing.assert_allclose(pq * np.sign(np.sum(pq * expected, axis=1, keepdims=True)), expected, atol=1e-14)
@@ -88,7 +88,7 @@ def test_quat_conj_of_one_quaternion():
 
 
 def test_quat_conj_of_a_batch():
-    q = _wxyz(Rotation.random(5, random_state=9))
+    q = _wxyz(Rotation.random(5, random_state=9))  # pyright: ignore[reportCallIssue]
     np.testing.assert_array_equal(quat_conj(q), q * np.array([1.0, -1.0, -1.0, -1.0]))
 
 

@@ -92,13 +92,13 @@ def test_a_body_in_the_air_follows_the_free_motion_exactly(box):
 
 
 def test_the_command_lines_compilation_cache_folder(tmp_path, monkeypatch):
-    before = jax.config.jax_compilation_cache_dir
+    before = jax.config.jax_compilation_cache_dir  # pyright: ignore[reportAttributeAccessIssue]
     try:
         monkeypatch.setenv(CACHE_VARIABLE, str(tmp_path / "cache"))
         assert compilation_cache() == str(tmp_path / "cache")
-        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache")
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache")  # pyright: ignore[reportAttributeAccessIssue]
         monkeypatch.setenv(CACHE_VARIABLE, "off")
         jax.config.update("jax_compilation_cache_dir", before)
-        assert compilation_cache() is None and jax.config.jax_compilation_cache_dir == before
+        assert compilation_cache() is None and jax.config.jax_compilation_cache_dir == before  # pyright: ignore[reportAttributeAccessIssue]
     finally:
         jax.config.update("jax_compilation_cache_dir", before)

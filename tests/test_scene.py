@@ -123,7 +123,7 @@ def test_two_danos_collide_and_conserve_momentum():
     p1 = masses @ np.asarray(traj.qvel[-1]).reshape(2, 6)[:, :3]
     assert float(traj.qvel[-1, 0]) > 0.3  # the box was hit and moves along +x
     assert float(traj.qvel[-1, 6]) < 1.5  # the ball slowed down
-    np.testing.assert_allclose(p1, p0, atol=1e-6 * np.linalg.norm(p0))
+    np.testing.assert_allclose(p1, p0, atol=1e-6 * float(np.linalg.norm(p0)))
 
 
 def test_danos_without_a_field_cannot_touch_each_other(dojo):

@@ -1,3 +1,5 @@
+from typing import Literal
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -33,6 +35,7 @@ def test_free_fall_and_torque_free_rotation(cube):
     )
     traj = Simulation.from_scene(scene).run(150)
     t = 150 * scene.timestep
+    assert scene.substeps is not None
     h = scene.timestep / scene.substeps
     # Semi-implicit Euler: z_n = z0 + v0 t - g t (t + h) / 2, an O(h) offset from the closed form.
     z_closed = 1 + t - G * t * t / 2
@@ -50,7 +53,12 @@ def test_free_fall_and_torque_free_rotation(cube):
     np.testing.assert_allclose(quat_to_mat(traj.qpos[0, 3:7]) @ traj.qvel[0, 3:6], [0.4, -1, 2], rtol=1e-12)
 
 
-def _slide(cube, smoothing: float, mode: str = "points", integrator: str = "explicit"):
+def _slide(
+    cube,
+    smoothing: float,
+    mode: Literal["points", "centroid"] = "points",
+    integrator: Literal["implicit", "explicit"] = "explicit",
+):
     """A 1 m/s slide at mu 0.5; the explicit step by default (its smoothed Coulomb law is what
     `coulomb_smoothing` sets; the implicit step's law has no such parameter)."""
     contact = ContactParams(sliding_friction=0.5, coulomb_smoothing=smoothing)
@@ -117,7 +125,7 @@ def test_free_sphere_collision_conserves_momentum(cube):
     p0 = mass @ np.stack([traj.qvel[0, 0:3], traj.qvel[0, 6:9]])
     p1 = mass @ np.stack([traj.qvel[-1, 0:3], traj.qvel[-1, 6:9]])
     assert float(traj.qvel[-1, 0]) > 0.3  # the cube was hit
-    np.testing.assert_allclose(p1, p0, atol=1e-6 * np.linalg.norm(p0))
+    np.testing.assert_allclose(p1, p0, atol=1e-6 * float(np.linalg.norm(p0)))
 
 
 def test_blow_up_is_reported_with_the_frame(cube):
@@ -210,7 +218,8 @@ def test_slope_with_any_ground_normal(cube):
     theta = np.radians(20.0)
     normal = (float(np.sin(theta)), 0.0, float(np.cos(theta)))
     quat = (float(np.cos(theta / 2)), 0.0, float(np.sin(theta / 2)), 0.0)  # box face on the slope
-    pos = tuple(float(v) for v in _rest_height(cube) * np.asarray(normal))
+    x, y, z = (float(v) for v in _rest_height(cube) * np.asarray(normal))
+    pos = (x, y, z)
     downhill = np.array([np.cos(theta), 0.0, -np.sin(theta)])
     for mu in (0.2, 0.6):
         contact = ContactParams(sliding_friction=mu, coulomb_smoothing=1000.0)

@@ -27,7 +27,7 @@ def _write(path, header, rows):
 
 
 def _unit_quats(n, seed=0):
-    q = Rotation.random(n, random_state=seed).as_quat()[:, [3, 0, 1, 2]]
+    q = Rotation.random(n, random_state=seed).as_quat()[:, [3, 0, 1, 2]]  # pyright: ignore[reportCallIssue]
     return q * np.where(q[:, :1] < 0, -1.0, 1.0)
 
 
@@ -393,6 +393,7 @@ def test_rotate_moves_positions_and_orientations_consistently():
     body_point = np.array([0.02, -0.01, 0.03])
     world = tr.pos + mats @ body_point
     np.testing.assert_allclose(out.pos + new @ body_point, world @ R.T + offset, atol=1e-14)
+    assert out.wrench is not None and tr.wrench is not None
     np.testing.assert_allclose(out.wrench[:, :3], tr.wrench[:, :3] @ R.T, atol=1e-14)
     np.testing.assert_allclose(out.wrench[:, 3:], tr.wrench[:, 3:] @ R.T, atol=1e-14)
     assert np.all(np.sum(out.quat[1:] * out.quat[:-1], axis=1) * np.sum(tr.quat[1:] * tr.quat[:-1], axis=1) > 0)

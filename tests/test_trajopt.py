@@ -56,7 +56,7 @@ def test_ilqr_solves_linear_quadratic_problem_to_the_riccati_solution(lq):
     problem, matrices, x0 = lq
     sol = solve(problem, x0, jnp.zeros((T, M)))
     assert sol.converged, sol.message
-    np.testing.assert_allclose(sol.controls, riccati_controls(*matrices, x0), atol=1e-9)
+    np.testing.assert_allclose(sol.controls, riccati_controls(*matrices, x0=x0), atol=1e-9)
     assert sol.iterations <= 3  # one Newton step, then the convergence check
 
 
@@ -65,7 +65,7 @@ def test_jacobians_taken_in_time_batches_give_the_same_solution(lq, batch):
     problem, matrices, x0 = lq
     sol = solve(problem, x0, jnp.zeros((T, M)), Options(jacobian_batch=batch))
     assert sol.converged, sol.message
-    np.testing.assert_allclose(sol.controls, riccati_controls(*matrices, x0), atol=1e-9)
+    np.testing.assert_allclose(sol.controls, riccati_controls(*matrices, x0=x0), atol=1e-9)
 
 
 def test_input_bounds_and_goal_constraint_hold_at_the_solution(lq):

@@ -22,8 +22,8 @@ def test_ray_box_finds_the_slab_interval_and_empty_for_misses():
     origins = jnp.asarray([[0.0, 0.0, 3.0], [0.5, 0.0, 3.0], [5.0, 0.0, 3.0], [0.0, 0.0, 0.0]])
     directions = jnp.asarray([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
     near, far = ray_box(origins, directions, BOX)
-    np.testing.assert_allclose(near, [2.0, 2.0, near[2], 0.0])
-    np.testing.assert_allclose(far, [4.0, 4.0, near[2], 1.0])  # a miss is empty; inside starts at 0
+    np.testing.assert_allclose(near, [2.0, 2.0, float(near[2]), 0.0])
+    np.testing.assert_allclose(far, [4.0, 4.0, float(near[2]), 1.0])  # a miss is empty; inside starts at 0
 
 
 def test_uniform_density_gives_beer_lambert_and_weights_sum_to_opacity():

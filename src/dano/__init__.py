@@ -15,6 +15,7 @@ and loads JAX only when a name that needs it is first used (PEP 562), so `dano -
 import importlib
 from typing import TYPE_CHECKING
 
+from dano import errors
 from dano.errors import (
     DanoError,
     DanoFileError,

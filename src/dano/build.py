@@ -1,7 +1,7 @@
 """Building a DANO from a density field: mass properties (eqs. 1-4) + surface samples."""
 
 from pathlib import Path
-from typing import Literal
+from typing import Literal, cast
 
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +10,7 @@ from dano.errors import DanoFileError, InvalidMassError
 from dano.fields import (
     MESH_SUFFIXES,
     AbstractField,
+    Bounds,
     TransformedField,
     as_grid,
     from_spec,
@@ -113,7 +114,7 @@ def scale_lengths(dano: DANO, scale: float) -> DANO:
         grid=dano.grid,
         grid_bounds=None
         if dano.grid_bounds is None
-        else (tuple(v * s for v in dano.grid_bounds[0]), tuple(v * s for v in dano.grid_bounds[1])),
+        else cast(Bounds, (tuple(v * s for v in dano.grid_bounds[0]), tuple(v * s for v in dano.grid_bounds[1]))),
     )
 
 

@@ -342,13 +342,14 @@ def _render_views(args: argparse.Namespace) -> None:
 def _fit_field(args: argparse.Namespace) -> None:
     import jax
 
-    from dano.fields import save_grid
+    from dano.fields import GridField, save_grid
     from dano.vision.data import load_nerf_synthetic
     from dano.vision.fit import FitConfig, fit_field, solidify
 
     views = load_nerf_synthetic(args.dataset, split=args.split, downscale=args.downscale)
     config = FitConfig(steps=args.steps, resolution=args.resolution, n_samples=args.samples)
     result = fit_field(views, config, key=jax.random.key(args.seed), progress=not args.json)
+    assert isinstance(result.field, GridField)  # the default model, "grid"
     solid = solidify(result.field, views)
     save_grid(args.output, solid.field)
     if args.raw:

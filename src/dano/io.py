@@ -11,6 +11,7 @@ import tempfile
 import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -56,7 +57,8 @@ def atomic_write(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
 def atomic_savez(path: str | Path, **arrays) -> None:
     """`np.savez_compressed` to `path` via a temporary file and an atomic rename."""
     with atomic_write(path) as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, **{k: np.asarray(v) for k, v in arrays.items()})
+        data: dict[str, Any] = {k: np.asarray(v) for k, v in arrays.items()}  # Any: no key is `allow_pickle`
+        np.savez_compressed(f, **data)
         f.flush()
         os.fsync(f.fileno())
 

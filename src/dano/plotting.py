@@ -24,8 +24,8 @@ def plot_dano(dano: DANO, path: str | Path, title: str = "", n_normals: int = 40
     fig = plt.figure(figsize=(11, 5.2))
     for k, (elev, azim) in enumerate([(20, -60), (0, -90)]):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
-        sc = ax.scatter(*points.T, c=np.asarray(dano.densities), s=1.5, cmap="viridis", alpha=0.6)
-        ax.quiver(*points[pick].T, *normals[pick].T, length=0.08 * size, color="tab:red", linewidth=0.6)
+        sc = ax.scatter(*points.T, c=np.asarray(dano.densities), s=1.5, cmap="viridis", alpha=0.6)  # pyright: ignore[reportArgumentType]
+        ax.quiver(*points[pick].T, *normals[pick].T, length=0.08 * size, color="tab:red", linewidth=0.6)  # pyright: ignore[reportArgumentType]
         ax.scatter(*com, color="black", s=40, label="centre of mass")
         ax.view_init(elev=elev, azim=azim)
         ax.set_box_aspect(np.ptp(points, axis=0))

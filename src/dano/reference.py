@@ -17,7 +17,7 @@ from typing import Literal
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  (compiled, no stub)
 
 from dano.errors import DanoFileError
 from dano.io import load_npz
@@ -91,7 +91,10 @@ def _fill_zero_gradients(points: np.ndarray, densities: np.ndarray, gradients: n
 
 
 def reference_drop_scene(
-    collider: str | Path, sliding_friction: float, duration: float = 7.0, integrator: str = "explicit"
+    collider: str | Path,
+    sliding_friction: float,
+    duration: float = 7.0,
+    integrator: Literal["implicit", "explicit"] = "explicit",
 ):
     """The scene of the reference's `bunny_trajectory_<mu>.csv` runs (Dojo.jl `bunny.jl`, commit c8ccf20e).
 

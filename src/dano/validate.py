@@ -25,8 +25,9 @@ def is_traced(value: Any) -> bool:
     if "jax" not in sys.modules:  # nothing can be traced before JAX is imported
         return False
     import jax
+    from jax.core import Tracer
 
-    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(value))
+    return any(isinstance(leaf, Tracer) for leaf in jax.tree.leaves(value))
 
 
 def _named(name: str) -> str:

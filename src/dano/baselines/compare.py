@@ -18,6 +18,7 @@ the truth's, and the DANO's `mass / (alpha * peak)` (its volume-equivalent).
 
 import dataclasses
 import time
+from typing import cast
 
 import mujoco
 import numpy as np
@@ -437,10 +438,10 @@ def reference_models(
         start = time.perf_counter()
         if path.stem.endswith("_decomposed"):
             pieces = _obj_groups(path)
-            whole = trimesh.util.concatenate(pieces)
+            whole = cast(trimesh.Trimesh, trimesh.util.concatenate(pieces))
             models.append(_pieces_model(f"level {level:g}", whole, pieces, time.perf_counter() - start))
             continue
-        mesh = outward(trimesh.load(path, force="mesh", process=True))
+        mesh = outward(cast(trimesh.Trimesh, trimesh.load(path, force="mesh", process=True)))
         mesh.merge_vertices()
         models.append(mesh_model(f"level {level:g}", mesh, decomposition, threshold, max_hulls, cache_dir, progress,
                                  time.perf_counter() - start, max_faces))  # fmt: skip

@@ -91,7 +91,7 @@ def outward_normal(shape: Primitive, y: Float[Array, " 3"]) -> Float[Array, " 3"
     return normalize(jax.grad(lambda p: signed_distance(shape, p[:, None])[0])(y))
 
 
-def indicator(f: Float[Array, " n"], delta: Float[Array, ""]) -> Float[Array, " n"]:
+def indicator(f: Float[Array, " n"], delta: float | Float[Array, ""]) -> Float[Array, " n"]:
     """Inside weight of each point: S(-f / delta), or the hard 1[f <= 0] when delta = 0."""
     safe = jnp.where(delta > 0, delta, 1.0)
     return jnp.where(delta > 0, smootherstep(-f / safe), (f <= 0).astype(f.dtype))

@@ -9,6 +9,7 @@ one geometry function here and nothing else.
     "centroid" mode: one point, the overlap centroid chi with the whole overlap psi (eqs. 7-10).
 """
 
+from collections.abc import Callable
 from typing import Literal
 
 import equinox as eqx
@@ -51,7 +52,7 @@ class Body(eqx.Module):
     weights: Float[Array, " n"]
     mass: Float[Array, ""]
     inertia: Float[Array, "3 3"]
-    field: object
+    field: Callable[[Array], Array] | None
     com: Float[Array, " 3"]
     peak: Float[Array, ""]
 
@@ -82,6 +83,7 @@ def primitive_points(shape: Primitive, body: Body, a: Frame, delta, mode: ForceM
 
 def occupancy(body: Body, frame: Frame, points: Float[Array, "3 k"]) -> Float[Array, " k"]:
     """How much each world point is inside a DANO: its field there over its peak, in [0, 1]."""
+    assert body.field is not None, "a DANO without a field has no occupancy"  # `compile_scene` refuses those
     local = frame.R.T @ (points - frame.x[:, None]) + body.com[:, None]
     return jnp.clip(body.field(local.T) / body.peak, 0.0, 1.0)
 

@@ -102,7 +102,9 @@ class Wrench(eqx.Module):
     torque: Float[Array, " 3"]
 
 
-def coulomb_direction(a: Float[Array, "3 ..."], smoothing, regularizer, gain=2 / jnp.pi) -> Float[Array, "3 ..."]:
+def coulomb_direction(
+    a: Float[Array, "3 ..."], smoothing, regularizer, gain: float | Array = 2 / jnp.pi
+) -> Float[Array, "3 ..."]:
     """C(a) = -g atan(s|a|) a / (eps + |a|), g = 2/pi by default; vectors along axis 0."""
     norm = safe_norm(a, axis=0)[None]
     return -gain * jnp.arctan(smoothing * norm) * a / (regularizer + norm)

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -145,7 +146,7 @@ class BoxField(_AnalyticField):
                 np.where(
                     t < 0,
                     (size[i] + 2 * t) ** 3 * np.prod(np.delete(size, i) + 2 * t[:, None], axis=1) / 12,
-                    _rounded_box_second_moment(size[i], *np.delete(size, i), t),
+                    _rounded_box_second_moment(size[i], *np.delete(size, i), t=t),
                 )
                 for i in range(3)
             ],

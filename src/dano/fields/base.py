@@ -6,7 +6,8 @@ whose array leaves are the parameters (so `jax.grad` reaches them) and whose box
 """
 
 import abc
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -19,7 +20,7 @@ Bounds = tuple[tuple[float, float, float], tuple[float, float, float]]
 """((x_lo, y_lo, z_lo), (x_hi, y_hi, z_hi)) in the field's frame, m."""
 
 
-def as_bounds(bounds: ArrayLike | Bounds) -> Bounds:
+def as_bounds(bounds: ArrayLike | Bounds | Sequence[Sequence[float]]) -> Bounds:
     """Checks and converts a `(2, 3)` array-like box to the hashable `Bounds` tuple."""
     b = np.asarray(bounds, dtype=np.float64)
     if b.shape != (2, 3):
@@ -33,7 +34,15 @@ def as_bounds(bounds: ArrayLike | Bounds) -> Bounds:
 class AbstractField(eqx.Module):
     """A density field phi: R^3 -> R_+ (paper eq. 1 before the mass scale alpha)."""
 
-    bounds: eqx.AbstractVar[Bounds]
+    if TYPE_CHECKING:
+        # At run time an `AbstractVar` makes no dataclass field: a subclass's own `bounds` field
+        # keeps its place in `__init__` (`CallableField(fn, bounds)`). Type checkers read it as a
+        # field of this class, first in every subclass's `__init__`; a read-only property promises
+        # the attribute without making a field.
+        @property
+        def bounds(self) -> Bounds: ...
+    else:
+        bounds: eqx.AbstractVar[Bounds]
 
     @abc.abstractmethod
     def __call__(self, x: Float[Array, "n 3"]) -> Float[Array, " n"]:

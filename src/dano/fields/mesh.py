@@ -111,7 +111,8 @@ def mesh_field(
 
     # Only nodes near a change of occupancy can lie within `width` of the surface.
     reach = int(np.ceil(width / h)) + 1
-    near = ndimage.binary_dilation(inside, iterations=reach) & ~ndimage.binary_erosion(inside, iterations=reach)
+    core = np.asarray(ndimage.binary_erosion(inside, iterations=reach), dtype=bool)
+    near = ndimage.binary_dilation(inside, iterations=reach) & ~core
     band = np.flatnonzero(near.ravel())
     distance = np.full(len(nodes), np.inf)
     for start in tqdm(range(0, len(band), 8192), desc="surface distance", disable=not progress, unit="chunk"):

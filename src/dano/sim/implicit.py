@@ -23,14 +23,14 @@ the previous one delivered, so it scales with the support that answers friction'
 
 The DANOs' rigid motion is then integrated here, not by MuJoCo: v' gives x; the world angular
 momentum L' = I_w(q) w' is held over the step while the rotation follows it (explicit midpoint on
-SO(3)), so a torque-free body keeps L exactly and its energy to O(h^2). A DANO-DANO pair is solved jointly (12 x 12), and so is a
-DANO and a free primitive: the primitive's 6 velocities join V with its mass and inertia, its free
-motion V~ under gravity, and MuJoCo is handed the wrench M (V' - V~) / h that takes it to V' (its
-own contacts with other MuJoCo geoms come on top). Held at V~ instead, as a partner moving at a
-known velocity, a light free sphere hitting a DANO gained energy: the reaction, integrated
-explicitly by MuJoCo, was not the force the DANO's solve assumed. The reactions on the other
-MuJoCo bodies (actuated primitives, robot links, driven and so not free) are the pairs' forces with
-opposite sign, applied through `xfrc_applied` before `mjx.step` moves them.
+SO(3)), so a torque-free body keeps L exactly and its energy to O(h^2). A DANO-DANO pair is solved
+jointly (12 x 12), and so is a DANO and a free primitive: the primitive's 6 velocities join V with
+its mass and inertia and its free motion V~ under gravity, and MuJoCo is handed the wrench
+M (V' - V~) / h that takes it to V' (its own contacts with other MuJoCo geoms come on top). Held
+at V~ instead, as a partner moving at a known velocity, a light free sphere hitting a DANO gained
+energy: the reaction, integrated explicitly by MuJoCo, was not the force the DANO's solve assumed.
+The reactions on the other MuJoCo bodies (actuated primitives, robot links: driven, so not free)
+are the pairs' forces with opposite sign, applied through `xfrc_applied` before `mjx.step`.
 """
 
 import equinox as eqx
@@ -402,8 +402,8 @@ def implicit_step(
         def missed(V) -> Array:
             """Whether a point that the active sets dropped is live at V (`dano.contact.active`)."""
             out = started_over
-            for j, a in enumerate(actives):
-                if a is None:
+            for j, (a, drop) in enumerate(zip(actives, drops, strict=True)):
+                if a is None or drop is None:  # both or neither
                     continue
                 dV = pair_velocity(j, V) - pair_velocity(j, V_free)
 
@@ -411,7 +411,7 @@ def implicit_step(
                     return active.missed(supports[j], patches[j], a, u_n0[j], pair_velocity(j, V), h)
 
                 # the exact check under a once-or-never loop: in a batch, only when some element needs it
-                safe = active.bound_holds(supports[j], drops[j], dV, h)
+                safe = active.bound_holds(supports[j], drop, dV, h)
                 out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
             return out
 
@@ -470,7 +470,11 @@ def implicit_step(
                 else:
                     sets = full()
                     g = pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
-                centre = kin.xipos[mate.body] if kind == "link" else mate.frame.x
+                if kind == "link":
+                    assert kin is not None  # `link_motion` ran: the world has links
+                    centre = kin.xipos[mate.body]
+                else:
+                    centre = mate.frame.x
                 xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / h, frames[i].x, centre))
             return xfrc
 

@@ -25,7 +25,7 @@ from dano.contact.pairs import occupancy, world_points
 from dano.errors import DanoError
 from dano.io import atomic_write
 from dano.math import quat_to_mat
-from dano.sim.scene import Scene, World, compile_scene, pair_name, pairs
+from dano.sim.scene import Params, Scene, World, compile_scene, pair_name, pairs
 from dano.sim.step import Trajectory, dano_bodies, dano_frames, partners, rollout
 
 
@@ -47,11 +47,11 @@ class Simulation:
     """A compiled scene ready to roll out: the MuJoCo model, the MJX model and data, the world."""
 
     scene: Scene
-    model: object
+    model: mujoco.MjModel
     mjx_model: mjx.Model
     data: mjx.Data
-    world: object
-    params: object
+    world: World
+    params: Params
     _compiled: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -240,6 +240,7 @@ def check_trajectory(traj: Trajectory, scene: Scene, world: World | None = None)
     for name, start in zip(world.names, world.dano_qvel, strict=True) if world is not None else ():
         if start <= dof < start + 6:
             owner = f"body {name!r}"
+    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     h = scene.timestep / scene.substeps
     advice = (
         "raise substeps or lower impact_spring / impact_damper (the explicit step needs ~0.5 ms at Table I's stiff "
@@ -311,6 +312,7 @@ def audit_energy(traj: Trajectory, sim: Simulation, params=None) -> None:
         return
     f = int(np.argmax(gain))
     worst = int(np.argmax(E[f] - E[0]))
+    assert sim.scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     raise SimulationError(
         f"energy from nowhere: at frame {f} (t = {f * sim.scene.timestep:.4g} s) the scene has "
         f"{total[f] - total[0]:+.3g} J more than at the start ({(total[f] - total[0]) / scale:.1%} of its energy "
@@ -393,5 +395,6 @@ def at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
 def at_interval(scene: Scene, dt: float) -> Scene:
     """The scene with one frame per `dt` s, split into substeps no longer than the scene's own
     (`scene.timestep / scene.substeps`: the contact's Jacobian needs them short, see README)."""
+    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     substeps = max(1, int(np.ceil(dt / (scene.timestep / scene.substeps) - 1e-9)))
     return dataclasses.replace(scene, timestep=dt, substeps=substeps)

@@ -9,7 +9,8 @@ MuJoCo; with DANOs they collide through the DANO contact model.
 """
 
 import dataclasses
-from typing import Literal
+from collections.abc import Callable
+from typing import Any, Literal, cast
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -79,12 +80,12 @@ class DanoBody:
             V.inertia_tensor(self.dano.inertia, f"{where}: inertia", SceneError)
 
 
-def _contact_field(body: DanoBody):
+def _contact_field(body: DanoBody) -> Callable[[Array], Array] | None:
     """The field a DANO's partners query: the online field if given, else its baked grid."""
     from dano.fields import GridField
 
     if body.field is not None:
-        return body.field
+        return cast(Callable[[Array], Array], body.field)
     if body.dano.grid is None:
         return None
     return GridField(jnp.asarray(body.dano.grid), body.dano.grid_bounds)
@@ -355,7 +356,7 @@ class DanoState(eqx.Module):
     mass: Float[Array, ""]
     inertia: Float[Array, "3 3"]
     com: Float[Array, " 3"]
-    field: object
+    field: Callable[[Array], Array] | None
     peak: Float[Array, ""]
     budget: int = eqx.field(static=True, default=0)
     """points per contact pair that the implicit step solves over (`dano.contact.active`); 0: all."""
@@ -404,7 +405,7 @@ class World(eqx.Module):
     prim_mass: tuple[float, ...] = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
     dt: float = eqx.field(static=True)
-    force_mode: str = eqx.field(static=True)
+    force_mode: Literal["points", "centroid"] = eqx.field(static=True)
     integrator: str = eqx.field(static=True, default="implicit")
     fallback_slot: int = eqx.field(static=True, default=-1)
     """`mjx.Data.userdata` slot counting the steps whose active sets overflowed (-1: none)."""
@@ -558,6 +559,7 @@ def compile_scene(scene: Scene):
             )
     spec = mujoco.MjSpec() if scene.robot is None else _robot_spec(scene.robot)
     robot_bodies = _prepare_robot(spec, scene.robot) if scene.robot is not None else []
+    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     spec.option.timestep = scene.timestep / scene.substeps
     spec.option.gravity = list(scene.gravity)
     if scene.integrator == "implicit":
@@ -687,6 +689,7 @@ rest depth (5 g / k). Deeper, the contact spring throws it out (1 cm deep: 4.5 m
 def _check_start(scene: Scene, world: World, overrides: dict) -> None:
     """Refuses initial states the contact cannot resolve: a DANO started inside the ground, or moving
     so fast that it crosses its own size in one step (it would tunnel through what it should hit)."""
+    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     dt = scene.timestep / scene.substeps
     for body, state in zip(scene.bodies, world.danos, strict=True):
         reach = state.reach
@@ -924,7 +927,8 @@ def load_scene(path) -> Scene:
         pair_contact.append((key, _located(path, where, lambda p=p: dataclasses.replace(contact, **p))))
     if not bodies:
         raise SceneError(f"{path}: no [[body]]: a scene needs at least one DANO")
-    kw = dict(sim, bodies=tuple(bodies), primitives=tuple(prims), contact=contact, pair_contact=tuple(pair_contact))
+    kw: dict[str, Any] = {**sim, "bodies": tuple(bodies), "primitives": tuple(prims), "contact": contact,
+                          "pair_contact": tuple(pair_contact)}  # fmt: skip
     if "ground" in doc:
         ground = _read(doc["ground"], "ground", "[ground]", path)
         kw.update(ground_height=ground.get("height", 0.0), ground_normal=ground.get("normal", (0.0, 0.0, 1.0)))

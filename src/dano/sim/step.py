@@ -21,6 +21,7 @@ from jaxtyping import Array, Float
 
 from dano._mjx import mjx
 from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere
+from dano.contact.overlap import Primitive
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
 from dano.math import normalize, quat_to_mat
@@ -81,6 +82,7 @@ def link_frame(link: LinkGeom, kin: mjx.Data) -> Frame:
 
 def link_shape(link: LinkGeom, f: Frame):
     if link.kind == "mesh":
+        assert link.normals is not None and link.offsets is not None  # `_link_geom` sets them for a mesh
         return Polytope(f.x, f.R, link.normals, link.offsets)
     if link.kind == "sphere":
         return Sphere(f.x, jnp.asarray(link.size[0]))
@@ -117,7 +119,7 @@ class Partner(eqx.Module):
     """
 
     frame: Frame
-    shape: object
+    shape: Primitive | None
     body: int = eqx.field(static=True)
     dano: int = eqx.field(static=True)
     inv_mass: float = eqx.field(static=True)
@@ -125,6 +127,7 @@ class Partner(eqx.Module):
 
 
 def _ground(world: World, k: int, d, kin, mocap_vel) -> Partner:
+    assert world.ground_height is not None  # a ground pair exists only then (`pairs`)
     n = world.ground_normal
     b = _static_frame(tuple(world.ground_height * v for v in n), (1.0, 0.0, 0.0, 0.0))
     return Partner(b, HalfSpace(jnp.asarray(n), b.x), -1, -1, 0.0, 0.0)
@@ -160,7 +163,9 @@ def pair_points(world: World, p: ContactParams, partner: Partner, bodies, i: int
     """The contact points of DANO i (frame a) with its partner (frame b), broad phase included."""
     if partner.dano >= 0:
         return dano_points(bodies[i], bodies[partner.dano], a, b, world.force_mode)
-    fn = lambda: primitive_points(partner.shape, bodies[i], a, p.indicator_width, world.force_mode)  # noqa: E731
+    shape = partner.shape
+    assert shape is not None  # only a DANO partner has none
+    fn = lambda: primitive_points(shape, bodies[i], a, p.indicator_width, world.force_mode)  # noqa: E731
     if not partner.radius:
         return fn()
     zero = jax.eval_shape(fn)
@@ -233,7 +238,10 @@ def contact_xfrc(
         m: the model, needed when the world has a robot (for its link poses).
     """
     xfrc = jnp.zeros_like(d.xfrc_applied)
-    kin = link_motion(m, d) if world.links else None
+    kin = None
+    if world.links:
+        assert m is not None, "a world with a robot needs the model `m` (its link poses)"
+        kin = link_motion(m, d)
     frames, bodies = dano_frames(world, d), dano_bodies(world, params)
     for p, (i, kind, _), partner in zip(params.contact, pairs(world), partners(world, d, mocap_vel, kin), strict=True):
         w = explicit_pair_wrench(world, p, partner, bodies, frames, i)
@@ -241,7 +249,11 @@ def contact_xfrc(
         if partner.dano >= 0:
             xfrc = scatter(xfrc, world.dano_body[partner.dano], reaction(w, frames[i].x, frames[partner.dano].x))
         elif partner.body >= 0:
-            centre = kin.xipos[partner.body] if kind == "link" else partner.frame.x
+            if kind == "link":
+                assert kin is not None  # `link_motion` ran: the world has links
+                centre = kin.xipos[partner.body]
+            else:
+                centre = partner.frame.x
             xfrc = scatter(xfrc, partner.body, reaction(w, frames[i].x, centre))
     return xfrc
 
@@ -352,7 +364,8 @@ def rollout(
     if checkpoint:
         frame = jax.checkpoint(frame)
     _, (qpos, qvel, fell) = jax.lax.scan(frame, d, (ctrl, mocap_pos, external), length=n_frames)
-    fell = None if fell is None else jnp.concatenate([fallbacks(world, d)[None], fell])
+    first = fallbacks(world, d)  # None exactly when `fell` is
+    fell = None if fell is None or first is None else jnp.concatenate([first[None], fell])
     return Trajectory(jnp.concatenate([d.qpos[None], qpos]), jnp.concatenate([d.qvel[None], qvel]), fell)
 
 

@@ -9,6 +9,7 @@ Used by the tests, `bench/sysid.py`, the examples and `dano demo`.
 """
 
 import dataclasses
+from typing import Literal
 
 import jax
 import jax.numpy as jnp
@@ -41,7 +42,7 @@ def slide_scene(
     friction: float = 0.5,
     velocity: tuple[float, float] = (1.6, 0.3),
     spin: float = 2.0,
-    force_mode: str = "points",
+    force_mode: Literal["points", "centroid"] = "points",
 ) -> Scene:
     """A DANO launched along the table z = 0 with `velocity` (m/s) and `spin` (rad/s about z)."""
     body = DanoBody("object", dano, pos=(0.0, 0.0, resting_height(dano)), vel=(*velocity, 0.0), angvel=(0.0, 0.0, spin))

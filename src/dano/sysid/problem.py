@@ -29,7 +29,7 @@ from dano.contact.wrench import ContactParams
 from dano.errors import DanoError
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul
 from dano.sim.run import at_interval
-from dano.sim.scene import Params, Scene, World, compile_scene, pairs
+from dano.sim.scene import DanoBody, Params, Primitive, Scene, World, compile_scene, pairs
 from dano.sim.step import rollout
 from dano.sysid.data import Track, estimate_velocity
 
@@ -148,7 +148,7 @@ class Observed:
     qpos: int
     qvel: int
     kind: str  # "free" (7 qpos, 6 qvel) or "slide" (3 + 3: an actuated primitive, no rotation)
-    offset: tuple[float, float, float]  # world position at qpos = 0 (slides)
+    offset: tuple[float, ...]  # (3,) world position at qpos = 0 (slides)
     length: float  # m/rad, turns a rotation error into a length
 
     @property
@@ -245,7 +245,7 @@ def make_problem(
         SysidError: unknown names, no observed body, mismatched frame rates, or windows that would
             start from a state the data does not give.
     """
-    if not jax.config.jax_enable_x64:
+    if not jax.config.jax_enable_x64:  # pyright: ignore[reportAttributeAccessIssue]  (a dynamic option)
         raise SysidError(
             "system identification needs float64 (the Jacobians of stiff contact overflow float32): call "
             "jax.config.update('jax_enable_x64', True) first (the dano command does)"
@@ -284,7 +284,7 @@ def make_problem(
     )  # fmt: skip
 
 
-def _resolve(scene: Scene, name: str) -> tuple[str, object]:
+def _resolve(scene: Scene, name: str) -> tuple[str, DanoBody | Primitive]:
     danos = {b.name: b for b in scene.bodies}
     prims = {p.name: p for p in scene.primitives}
     if name == "":
@@ -307,12 +307,14 @@ def _observed(scene: Scene, world: World, recordings, rotation_length) -> tuple[
     for name in names:
         kind, body = _resolve(scene, name)
         if kind == "dano":
+            assert isinstance(body, DanoBody)
             i = world.names.index(body.name)
             dano = body.dano
             gyration = float(np.sqrt(np.trace(np.asarray(dano.inertia)) / (2.0 * float(dano.mass))))
             length = gyration if rotation_length is None else float(rotation_length)
             out.append(Observed(name, world.dano_qpos[i], world.dano_qvel[i], "free", (0.0, 0.0, 0.0), length))
         elif kind in ("free", "actuated"):
+            assert isinstance(body, Primitive)
             k = world.prim_names.index(body.name)
             length = max(body.size) if rotation_length is None else float(rotation_length)
             moving = "free" if kind == "free" else "slide"

@@ -152,8 +152,9 @@ class _Compiled:
         self.p = _width(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
         self.q = _width(problem.terminal_constraints, jnp.zeros(n))
         ts = jnp.arange(T)
-        c_fn = problem.constraints if self.p else (lambda x, u, t: jnp.zeros(0))
-        h_fn = problem.terminal_constraints if self.q else (lambda x: jnp.zeros(0))
+        given_c, given_h = problem.constraints, problem.terminal_constraints  # not None where p, q > 0
+        c_fn = given_c if self.p and given_c is not None else (lambda x, u, t: jnp.zeros(0))
+        h_fn = given_h if self.q and given_h is not None else (lambda x: jnp.zeros(0))
 
         def running(x, u, t, lam, rho, active):
             c = c_fn(x, u, t)

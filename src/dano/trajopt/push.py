@@ -161,10 +161,10 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         radius = float(sim.scene.primitives[0].size[0])
         vp = _dof(sim, p)
 
-        def effector(x):  # position and velocity
+        def effector(x) -> tuple[jax.Array, jax.Array]:  # position and velocity
             return home + x[p : p + 3], x[nq + vp : nq + vp + 3]
 
-        def lowest(x):
+        def lowest(x) -> jax.Array:
             return (home[2] + x[p + 2] - radius)[None]
 
         limit = task.force_limit
@@ -173,7 +173,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         def input_limits(x, u):
             return jnp.concatenate([u - limit, -u - limit])
 
-        def guess(scale):  # push towards the goal for a third, brake for a third
+        def guess(scale) -> np.ndarray:  # push towards the goal for a third, brake for a third
             T, third = task.horizon, task.horizon // 3
             u = np.zeros((T, 3))
             u[:third, :2] = scale * direction_xy
@@ -186,6 +186,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         boxes = [link for link in sim.world.links if link.kind == "box"]  # the fingers
         box_geoms, box_sizes = jnp.asarray([b.geom for b in boxes]), jnp.asarray([b.size for b in boxes])
         hand = model.body("panda_hand").id
+        assert sim.scene.robot is not None  # the panda's scene
         kp, kv = sim.scene.robot.kp, sim.scene.robot.kv
         lo, hi = (jnp.asarray(model.jnt_range[:7, i]) for i in (0, 1))
         tau = jnp.asarray(PANDA_TORQUE)
@@ -194,10 +195,11 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         def kinematics(x):
             return mjx_kinematics(sim.mjx_model, d0.replace(qpos=x[:nq]))
 
-        def effector(x):  # the hand's position; its speed enters through the joint velocities
+        # the hand's position; its speed enters through the joint velocities
+        def effector(x) -> tuple[jax.Array, jax.Array]:
             return kinematics(x).xpos[hand], x[nq : nq + 7]
 
-        def lowest(x):  # each finger box's lowest corner (|.| smoothed: the boxes start upright)
+        def lowest(x) -> jax.Array:  # each finger box's lowest corner (|.| smoothed: the boxes start upright)
             k = kinematics(x)
             up = k.geom_xmat[box_geoms].reshape(-1, 3, 3)[:, 2, :]
             return k.geom_xpos[box_geoms, 2] - jnp.sum(jnp.sqrt(up**2 + 1e-6) * box_sizes, axis=1)
@@ -206,7 +208,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
             torque = kp * (u - x[:7]) - kv * x[nq : nq + 7]
             return jnp.concatenate([u - hi, lo - u, torque - tau, -torque - tau])
 
-        def guess(scale):  # sweep the base yaw towards the goal and hold
+        def guess(scale) -> np.ndarray:  # sweep the base yaw towards the goal and hold
             u = np.tile(np.asarray(PANDA_HOME[:7]), (task.horizon, 1))
             u[:, 0] = -scale * np.minimum(1.0, np.arange(1, task.horizon + 1) / (0.6 * task.horizon))
             return u
@@ -323,6 +325,7 @@ def render_push(push: PushProblem, result: PushResult, path, frames_per_step: in
     from dano.sim.render import render_video
 
     scene = push.sim.scene
+    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     if scene.substeps % frames_per_step:
         frames_per_step = 1
     fine = dataclasses.replace(

@@ -16,6 +16,7 @@ inside the mask in every view, padded by `margin`. Rays are sampled only inside 
 import dataclasses
 import math
 import time
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -95,7 +96,9 @@ class RadianceField(eqx.Module):
         return self.density
 
     def regulariser(self) -> Float[Array, ""]:
-        return jnp.zeros((), dtype=self.density.mlp.layers[-1].bias.dtype)
+        bias = self.density.mlp.layers[-1].bias
+        assert bias is not None  # the MLP of a `NeuralField` has biases
+        return jnp.zeros((), dtype=bias.dtype)
 
 
 class VoxelRadiance(eqx.Module):
@@ -120,7 +123,7 @@ class VoxelRadiance(eqx.Module):
     def regulariser(self) -> Float[Array, ""]:
         """Mean squared difference of neighbouring nodes' raw density (total variation)."""
         r = self.raw
-        return sum(jnp.mean(jnp.diff(r, axis=a) ** 2) for a in range(3))
+        return cast(Array, sum(jnp.mean(jnp.diff(r, axis=a) ** 2) for a in range(3)))
 
 
 def init_radiance_field(bounds, config: FitConfig, *, key: PRNGKeyArray) -> RadianceField | VoxelRadiance:
@@ -138,7 +141,9 @@ def init_radiance_field(bounds, config: FitConfig, *, key: PRNGKeyArray) -> Radi
     )
     k1, k2 = jax.random.split(key)
     density = NeuralField(np.stack([lo, hi]), net, key=k1)
-    density = eqx.tree_at(lambda f: f.mlp.layers[-1].bias, density, jnp.full_like(density.mlp.layers[-1].bias, -4.0))
+    bias = density.mlp.layers[-1].bias
+    assert bias is not None  # the MLP of a `NeuralField` has biases
+    density = eqx.tree_at(lambda f: f.mlp.layers[-1].bias, density, jnp.full_like(bias, -4.0))
     colour = eqx.nn.MLP(3 + 6 * config.n_frequencies, 3, config.width, 2, activation=jax.nn.softplus, key=k2)
     return RadianceField(density, colour)
 
@@ -233,7 +238,7 @@ def fit_field(
     directions = jnp.asarray(np.concatenate([d for _, d in rays]), dtype=dtype)
     colours = jnp.asarray(views.images.reshape(-1, 3), dtype=dtype)
     has_masks = views.masks is not None
-    masks = jnp.asarray(views.masks.reshape(-1) if has_masks else np.zeros(len(colours)), dtype=dtype)
+    masks = jnp.asarray(views.masks.reshape(-1) if views.masks is not None else np.zeros(len(colours)), dtype=dtype)
     near, far = ray_box(origins, directions, jnp.asarray(bounds, dtype=dtype))
     bg = jnp.asarray(background, dtype=dtype)
     mask_weight = config.mask_weight if has_masks else 0.0
@@ -308,7 +313,7 @@ def solidify(
     """
     from scipy import ndimage
 
-    nodes = grid_nodes(field.bounds, field.density.shape).reshape(-1, 3)
+    nodes = grid_nodes(field.bounds, cast(tuple[int, int, int], field.density.shape)).reshape(-1, 3)
     chosen = np.unique(np.linspace(0, views.n_views - 1, min(n_views, views.n_views)).astype(int))
     lo, hi = np.asarray(field.bounds)
     n_samples = int(np.ceil(np.linalg.norm(hi - lo) / np.min(field.spacing)))
@@ -330,7 +335,7 @@ def solidify(
             part = np.asarray(transmittance(eye, jnp.asarray(nodes[start : start + chunk])))
             seen[start : start + chunk] = np.maximum(seen[start : start + chunk], part)
     seen = seen.reshape(field.density.shape)
-    labels, n = ndimage.label(seen <= threshold)
+    labels, n = cast(tuple[np.ndarray, int], ndimage.label(seen <= threshold))
     if n == 0:
         raise FitError("every node of the fitted field is seen by some camera: the field is empty")
     largest = 1 + int(np.argmax(ndimage.sum(np.ones_like(seen), labels, range(1, n + 1))))

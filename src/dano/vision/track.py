@@ -28,6 +28,7 @@ any field whose inside is at its peak works; its units do not matter.
 import dataclasses
 import functools
 import time
+from typing import cast
 
 import jax
 import jax.numpy as jnp
@@ -95,7 +96,7 @@ class Silhouette:
 def silhouette(field: AbstractField, camera: Camera, config: TrackConfig) -> Silhouette:
     """Prepares rendering of `field` by `camera` (rays of the downsampled image, a baked grid)."""
     lo, hi = (np.asarray(b) for b in field.bounds)
-    grid = as_grid(field, (config.grid,) * 3)
+    grid = as_grid(field, (config.grid, config.grid, config.grid))
     radius = 0.5 * float(np.linalg.norm(hi - lo))
     peak = field_peak(grid)
     origins, directions = camera_rays(camera)
@@ -263,7 +264,7 @@ def track(
             with jax.numpy_dtype_promotion("standard"):  # optax raises floats to int powers
                 direction, state = optimiser.update(jax.grad(loss)(delta), state)
             rate = cosine_rate(config.learning_rate, i / n)
-            return delta - rate * direction, state
+            return delta - rate * cast(Array, direction), state  # `delta`'s structure: an array
 
         delta = jnp.zeros(6, dtype=base_pos.dtype)
         delta, _ = jax.lax.fori_loop(0, n, body, (delta, optimiser.init(delta)))
