@@ -331,3 +331,15 @@ def test_a_track_stored_one_row_per_coordinate_is_read_as_its_transpose(tmp_path
     numbers_only.write_text("".join(",".join(f"{x:g}" for x in v) + "\n" for v in rows.values()))
     with pytest.raises(TrackFileError, match="line 1: numbers, not column names"):
         read_tracks(numbers_only)
+
+
+def test_render_views_into_an_existing_folder_names_the_command_line_option(tmp_path, capsys):
+    import trimesh
+
+    trimesh.creation.box(extents=(0.1, 0.1, 0.1)).export(tmp_path / "box.ply")
+    (tmp_path / "views").mkdir()
+    (tmp_path / "views" / "keep.txt").write_text("earlier output")
+    err = _one_line_exit_2(capsys, ["render-views", str(tmp_path / "box.ply"), "-o", str(tmp_path / "views"),
+                                    "--views", "2"])  # fmt: skip
+    assert "already exists (--overwrite" in err
+    assert (tmp_path / "views" / "keep.txt").read_text() == "earlier output"
