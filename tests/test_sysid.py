@@ -132,7 +132,8 @@ def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path,
     ])  # fmt: skip
     assert code == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"params", "stderr", "loss", "seconds"}
+    assert set(out) == {"params", "stderr", "loss", "iterations", "converged", "message", "rms", "seconds"}
+    assert out["converged"] is True and out["iterations"] >= 1 and out["rms"]["position"] < 5e-3
     assert set(out["params"]) == {"friction"}
     assert abs(out["params"]["friction"] - MU) < 2e-3 * MU
     assert out["loss"][-1] < out["loss"][0]

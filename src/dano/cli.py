@@ -471,7 +471,11 @@ def parser() -> argparse.ArgumentParser:
     y.add_argument("--scene", required=True, help="scene .toml: the object, the table, contact parameters")
     y.add_argument("--traj", action="append", required=True, help="pose CSV t,x,y,z,qw,qx,qy,qz (repeatable)")
     y.add_argument("--fit", required=True, help="comma-separated: friction, mass_scale, inertia_scale, contact keys")
-    y.add_argument("--json", action="store_true", help='one JSON object {"params", "stderr", "loss", "seconds"}')
+    y.add_argument(
+        "--json",
+        action="store_true",
+        help='one JSON object {"params", "stderr", "loss", "iterations", "converged", "message", "rms", "seconds"}',
+    )
     y.add_argument("--plot", type=_output(*PLOT), help="PNG of observed vs fitted trajectories and the loss")
     y.add_argument("--fps", type=_POSITIVE, help="frame rate of files without a t column")
     y.add_argument("--scale", type=_POSITIVE, help="metres per unit of the positions in the files")

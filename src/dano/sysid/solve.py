@@ -65,8 +65,14 @@ class Identification:
     rms_rotation: float
 
     def summary(self) -> dict:
-        """The `dano sysid --json` object."""
-        return {"params": self.params, "stderr": self.stderr, "loss": self.loss, "seconds": self.seconds}
+        """The `dano sysid --json` object: estimates and standard errors keyed by the names as given,
+        the loss history, iterations, whether and why it stopped, the RMS errors (position in m,
+        rotation in rad) and the wall time."""
+        return {
+            "params": self.params, "stderr": self.stderr, "loss": self.loss, "iterations": self.iterations,
+            "converged": self.converged, "message": self.message,
+            "rms": {"position": self.rms_position, "rotation": self.rms_rotation}, "seconds": self.seconds,
+        }  # fmt: skip
 
 
 def _compiled(problem: Problem, jac: str):
