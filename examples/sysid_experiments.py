@@ -89,7 +89,7 @@ def mesh_push() -> None:
         r = identify(problem, init={"mass_scale": 1.0, "sliding_friction": 0.5}, progress=False)
         errors = ", ".join(f"{k} {r.params[k]:.4f} ({r.params[k] / v - 1:+.2%})" for k, v in truth.items())
         print(f"  {source}: {errors}; {r.iterations} iterations, {r.seconds:.0f} s, "
-              f"RMS {r.rms_position * 1e3:.2f} mm {r.rms_rotation:.3f} rad")  # fmt: skip
+              f"RMS {r.rms_position * 1e3:.2f} mm {r.rms_rotation or 0.0:.3f} rad")  # fmt: skip
 
 
 def soap(shared: Path, seeds: int) -> None:

@@ -219,3 +219,19 @@ def test_float32_is_refused_with_a_named_error(slide):
     scene, track = slide
     with jax.enable_x64(False), pytest.raises(dano.DanoError, match="float64"):
         make_problem(scene, [Recording({"object": track})], ["friction"])
+
+
+def test_a_constant_orientation_track_is_warned_about_and_fitted_from_positions(slide):
+    """A tracker that could not resolve rotation writes a constant quaternion: the fit is warned,
+    and with `rotation_weight=0` (`--rotation-weight 0`) positions alone give the friction."""
+    from dano.sysid.problem import ConstantOrientationWarning
+
+    scene, track = slide
+    noise = np.random.default_rng(0).normal(0.0, 1e-3, track.pos.shape)
+    flat = dataclasses.replace(track, pos=track.pos + noise, quat=np.tile(track.quat[0], (track.n_frames, 1)))
+    with pytest.warns(ConstantOrientationWarning, match=r"constant over 33 frames .* \(--rotation-weight 0"):
+        make_problem(scene, [Recording({"object": flat})], ["friction"], initial="velocity")
+    problem = make_problem(scene, [Recording({"object": flat})], ["friction"], initial="velocity", rotation_weight=0)
+    result = identify(problem, init={"friction": 0.2}, progress=False)
+    assert abs(result.params["sliding_friction"] - MU) < 0.03 * MU
+    assert result.rms_rotation is None and result.summary()["rms"]["rotation"] is None

@@ -215,6 +215,7 @@ def _sysid(args: argparse.Namespace) -> None:
         fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=args.gravity, body=args.body,
         window=args.window, initial=args.fit_initial, sigma=args.sigma, init=_parse_pairs(args.init, "--init", 1),
         bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
+        rotation_weight=args.rotation_weight, settle=args.settle,
     )  # fmt: skip
     problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
     if args.plot:
@@ -225,11 +226,11 @@ def _sysid(args: argparse.Namespace) -> None:
     print(f"{'parameter':<20} {'estimate':>12} {'stderr':>12}")
     for name, value in result.params.items():
         print(f"{name:<20} {value:>12.6g} {result.stderr[name]:>12.3g}")
+    rotation = "not fitted" if result.rms_rotation is None else f"{np.degrees(result.rms_rotation):.3g} deg"
     print(
         f"loss {result.loss[0]:.4g} -> {result.loss[-1]:.4g} in {result.iterations} iterations ({result.message}), "
         f"{result.seconds:.2f} s; rms error: position {result.rms_position * 1e3:.3g} mm, "
-        f"rotation {np.degrees(result.rms_rotation):.3g} deg; {problem.n_windows} window(s) of {problem.n_frames} "
-        "frames"
+        f"rotation {rotation}; {problem.n_windows} window(s) of {problem.n_frames} frames"
     )
     if args.plot:
         print(f"wrote {args.plot}")
@@ -493,6 +494,12 @@ def parser() -> argparse.ArgumentParser:
     y.add_argument("--init", help="initial guesses name=value,... (default: the scene's values)")
     y.add_argument("--bounds", help="bounds name=low:high,... (default: Table I ranges, widened)")
     y.add_argument("--max-steps", type=_int(1), default=50)
+    y.add_argument("--rotation-weight", type=_float(0.0), default=1.0,
+                   help="weight of the orientation residuals (0: positions only, for a tracker that could "
+                   "not resolve rotation; default 1)")  # fmt: skip
+    y.add_argument("--settle", type=_float(0.0),
+                   help="m: a body this near the ground at a window's start is put on it (default 3 sigma; "
+                   "0: the data as they are)")  # fmt: skip
     y.set_defaults(run=_sysid)
 
     t = sub.add_parser("trajopt", help="trajectory optimisation: a robot pushes a DANO to a goal (constrained iLQR)")

@@ -543,8 +543,12 @@ def _budget(scene: Scene, body: DanoBody) -> int:
     return min(int(k), n)
 
 
-def compile_scene(scene: Scene):
+def compile_scene(scene: Scene, check_start: bool = True):
     """Builds the MuJoCo model and the `World`, `Params` and initial `qpos`/`qvel` of a scene.
+
+    `check_start` refuses initial states the contact cannot resolve (`_check_start`: a DANO inside
+    the ground, or crossing its own size in one step); identification turns it off, because its
+    initial states come from the data, not from the scene.
 
     Returns:
         (mj_model, world, params, qpos0, qvel0): the `mujoco.MjModel` (use `mjx.put_model`), the
@@ -642,7 +646,8 @@ def compile_scene(scene: Scene):
         fallback_slot=model.nuserdata - 1,
     )
     overrides = _pair_overrides(scene, world)
-    _check_start(scene, world, overrides)
+    if check_start:
+        _check_start(scene, world, overrides)
     params = Params(
         contact=tuple(overrides.get(pair_name(world, pr), scene.contact) for pr in pairs(world)),
         mass_scale=jnp.ones(len(danos)),

@@ -31,6 +31,9 @@ class SysidConfig:
         sigma: tracking noise, m.
         init, bounds: initial guesses and (low, high) bounds by name as given in `fit`.
         max_steps: Levenberg-Marquardt iterations at most.
+        rotation_weight: multiplies the rotation residuals (0: positions only).
+        settle: m; a body within this of the ground at a window's start is put on it (None: 3 sigma,
+            0: the data as they are; `make_problem`).
     """
 
     fit: tuple[str, ...]
@@ -45,6 +48,8 @@ class SysidConfig:
     init: dict = dataclasses.field(default_factory=dict)
     bounds: dict = dataclasses.field(default_factory=dict)
     max_steps: int = 50
+    rotation_weight: float = 1.0
+    settle: float | None = None
 
 
 def load_recordings(paths: Sequence[str | Path], fps: float | None, body: str | None) -> list[Recording]:
@@ -84,7 +89,10 @@ def identify_files(
     bounds = {by_name.get(k, canonical(k)): v for k, v in config.bounds.items()}
 
     def build(scene):
-        return make_problem(scene, recordings, names, window=config.window, initial=config.initial, sigma=config.sigma)
+        return make_problem(
+            scene, recordings, names, window=config.window, initial=config.initial, sigma=config.sigma,
+            rotation_weight=config.rotation_weight, settle=config.settle,
+        )  # fmt: skip
 
     if config.gravity is None:
         problem = build(scene)

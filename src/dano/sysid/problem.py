@@ -16,6 +16,7 @@ error weighs like the displacement it causes at the body's typical radius.
 """
 
 import dataclasses
+import warnings
 from collections.abc import Mapping, Sequence
 
 import equinox as eqx
@@ -150,6 +151,7 @@ class Observed:
     kind: str  # "free" (7 qpos, 6 qvel) or "slide" (3 + 3: an actuated primitive, no rotation)
     offset: tuple[float, ...]  # (3,) world position at qpos = 0 (slides)
     length: float  # m/rad, turns a rotation error into a length
+    weight: float = 1.0  # multiplies the rotation residuals (0: positions only)
 
     @property
     def n_velocity(self) -> int:
@@ -223,6 +225,7 @@ def make_problem(
     sigma: float = 1e-3,
     rotation_length: float | None = None,
     settle: float | None = None,
+    rotation_weight: float | int = 1.0,
 ) -> Problem:
     """Sets up Problem (17) for `scene` and observed `recordings`.
 
@@ -236,6 +239,8 @@ def make_problem(
         initial: "none" (initial states from the data), "velocity" or "state" (fitted too).
         sigma: tracking noise, m (residual unit; does not change the estimate, only the loss scale).
         rotation_length: m/rad for rotation residuals; default each body's radius of gyration.
+        rotation_weight: multiplies the rotation residuals (0: positions only, for a tracker that
+            could not resolve the orientation; `ConstantOrientationWarning` says when it looks so).
         settle: a DANO whose lowest surface point is within this distance (m) of the ground at a
             window's start is put on the ground there and its velocity along the normal dropped
             (default 3σ; 0 to keep the data as they are). The penalty contact is stiff: a body read
@@ -262,7 +267,7 @@ def make_problem(
         if abs(r.dt - dt) > 1e-6 * dt:
             raise SysidError(f"all trajectories must share one frame rate: {1 / r.dt:.6g} vs {1 / dt:.6g} fps")
     scene = at_interval(scene, dt)
-    model, world, params, qpos0, qvel0 = compile_scene(scene)
+    model, world, params, qpos0, qvel0 = compile_scene(scene, check_start=False)  # the data give the states
     m = mjx.put_model(model)
     d = mjx.make_data(m)
 
@@ -271,7 +276,11 @@ def make_problem(
     if W < 1:
         raise SysidError(f"window must be at least 1 frame interval, got {window}")
     recordings = [named_after_scene(scene, r) for r in recordings]
-    observed = _observed(scene, world, recordings, rotation_length)
+    if not (np.isfinite(rotation_weight) and rotation_weight >= 0):
+        raise SysidError(f"rotation_weight must be a finite number >= 0, got {rotation_weight}")
+    observed = _observed(scene, world, recordings, rotation_length, float(rotation_weight))
+    if rotation_weight > 0:
+        warn_constant_orientations(recordings, sigma)
     settle = 3.0 * sigma if settle is None else float(settle)
     windows = _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W, settle, initial)
     current_values(params, names)  # raises if a name has nothing to act on
@@ -301,7 +310,31 @@ def _resolve(scene: Scene, name: str) -> tuple[str, DanoBody | Primitive]:
     raise SysidError(f"the trajectory names body {name!r}, which the scene does not have ({sorted(danos | prims)})")
 
 
-def _observed(scene: Scene, world: World, recordings, rotation_length) -> tuple[Observed, ...]:
+class ConstantOrientationWarning(UserWarning):
+    """An orientation track that does not change while its body moves: likely a tracker that could
+    not resolve rotation, whose constant quaternion the fit would take as the truth."""
+
+
+def warn_constant_orientations(recordings: Sequence[Recording], sigma: float) -> None:
+    """Warns for each track whose orientation is constant (within 1e-6 rad) while its position
+    travels more than 10 sigma (measured: a real soap track's constant quaternion moved the fitted
+    friction from 0.57 to 0.44)."""
+    for r in recordings:
+        for name, track in r.tracks.items():
+            q = np.asarray(track.quat)
+            turn = 2.0 * np.arccos(np.clip(np.abs(q @ q[0]), 0.0, 1.0))
+            travel = float(np.max(np.linalg.norm(np.asarray(track.pos) - np.asarray(track.pos)[0], axis=1)))
+            if float(np.max(turn)) < 1e-6 and travel > 10.0 * sigma:
+                warnings.warn(
+                    f"the orientation of {name or 'the body'!r} is constant over {len(q)} frames while it travels "
+                    f"{travel:.3g} m: if the tracker could not resolve rotation, fit positions only "
+                    "(--rotation-weight 0, or make_problem(rotation_weight=0))",
+                    ConstantOrientationWarning,
+                    stacklevel=3,
+                )
+
+
+def _observed(scene: Scene, world: World, recordings, rotation_length, weight: float = 1.0) -> tuple[Observed, ...]:
     names = sorted({n for r in recordings for n in r.tracks})
     out = []
     for name in names:
@@ -312,13 +345,15 @@ def _observed(scene: Scene, world: World, recordings, rotation_length) -> tuple[
             dano = body.dano
             gyration = float(np.sqrt(np.trace(np.asarray(dano.inertia)) / (2.0 * float(dano.mass))))
             length = gyration if rotation_length is None else float(rotation_length)
-            out.append(Observed(name, world.dano_qpos[i], world.dano_qvel[i], "free", (0.0, 0.0, 0.0), length))
+            out.append(Observed(name, world.dano_qpos[i], world.dano_qvel[i], "free", (0.0, 0.0, 0.0), length, weight))
         elif kind in ("free", "actuated"):
             assert isinstance(body, Primitive)
             k = world.prim_names.index(body.name)
             length = max(body.size) if rotation_length is None else float(rotation_length)
             moving = "free" if kind == "free" else "slide"
-            out.append(Observed(name, world.prim_qpos[k], world.prim_qvel[k], moving, world.prim_pos[k], length))
+            out.append(
+                Observed(name, world.prim_qpos[k], world.prim_qvel[k], moving, world.prim_pos[k], length, weight)
+            )
         elif kind == "static":
             raise SysidError(f"body {name!r} is static in the scene; it cannot be observed moving")
     if not out:
@@ -529,7 +564,7 @@ def window_residuals(
     for b, o in enumerate(problem.observed):
         if o.kind == "free":
             pos, rot = q[:, o.qpos : o.qpos + 3], q[:, o.qpos + 3 : o.qpos + 7]
-            angle = quat_log(quat_mul(quat_conj(w.target_quat[:, b]), rot)) * o.length
+            angle = quat_log(quat_mul(quat_conj(w.target_quat[:, b]), rot)) * (o.length * o.weight)
         else:
             pos = q[:, o.qpos : o.qpos + 3] + jnp.asarray(o.offset)[None, :]
             angle = jnp.zeros_like(pos)

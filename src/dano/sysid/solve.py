@@ -49,7 +49,8 @@ class Identification:
         theta: (p,) the estimate in `problem.names` order.
         delta: (n, s) the fitted initial-state corrections per window (empty unless fitted).
         rms_position: root mean square position error at the estimate, m.
-        rms_rotation: root mean square rotation error at the estimate, rad.
+        rms_rotation: root mean square rotation error at the estimate, rad (None when the rotation
+            residuals were weighted out, `rotation_weight=0`).
     """
 
     params: dict[str, float]
@@ -62,7 +63,7 @@ class Identification:
     theta: np.ndarray
     delta: np.ndarray
     rms_position: float
-    rms_rotation: float
+    rms_rotation: float | None
 
     def summary(self) -> dict:
         """The `dano sysid --json` object: estimates and standard errors keyed by the names as given,
@@ -244,7 +245,7 @@ def identify(
         params={lab: float(v) for lab, v in zip(labels, theta, strict=True)},
         stderr=dict(zip(labels, _stderr(point.H, point.loss, problem, p), strict=True)),
         loss=history, seconds=seconds, iterations=len(history) - 1, converged=converged, message=message,
-        theta=theta, delta=delta, **_rms(problem, np.asarray(point.r)),
+        theta=theta, delta=delta, **_rms(problem, np.asarray(point.r)),  # pyright: ignore[reportArgumentType]
     )  # fmt: skip
 
 
@@ -311,13 +312,15 @@ def _stderr(H: np.ndarray, loss: float, problem: Problem, p: int) -> list[float]
     return [float(np.sqrt(max(cov[k, k], 0.0))) for k in range(p)]
 
 
-def _rms(problem: Problem, r: np.ndarray) -> dict[str, float]:
+def _rms(problem: Problem, r: np.ndarray) -> dict[str, float | None]:
     r = r.reshape(problem.windows.target_pos.shape[:3] + (6,)) * problem.sigma
     mask = np.asarray(problem.windows.mask) > 0
-    free = np.array([o.kind == "free" for o in problem.observed])
+    free = np.array([o.kind == "free" and o.weight > 0 for o in problem.observed])
+    scale = np.array([o.length * o.weight for o in problem.observed])
     pos = r[..., :3][mask]
-    rot = r[..., 3:][mask][:, free] / np.array([o.length for o in problem.observed])[free][None, :, None]
+    rot = r[..., 3:][mask][:, free] / scale[free][None, :, None]
+    no_rotation = not free.any() and any(o.kind == "free" for o in problem.observed)  # weighted out: unknown
     return {
         "rms_position": float(np.sqrt(np.mean(np.sum(pos**2, axis=-1)))),
-        "rms_rotation": float(np.sqrt(np.mean(np.sum(rot**2, axis=-1)))) if rot.size else 0.0,
+        "rms_rotation": None if no_rotation else float(np.sqrt(np.mean(np.sum(rot**2, axis=-1)))) if rot.size else 0.0,
     }
