@@ -107,12 +107,12 @@ def test_nonsense_values_are_refused(folder, edit, message):
 def test_a_body_started_inside_the_ground_or_too_fast_is_refused(ball):
     depth = 0.01  # the ball's surface points reach 3 cm below its centre
     with pytest.raises(SceneError, match=r"'ball' starts 10.\d* mm inside the ground .* at least 0.03\d* m above"):
-        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 0.03 - depth)),)))
-    compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 0.0295)),)))  # resting depth: fine
+        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 0.03 - depth)),)), check_start=True)
+    compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 0.0295)),)), check_start=True)  # resting depth: fine
     with pytest.raises(SceneError, match="starts at 500 m/s, moving 1 m per step"):
-        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 1), vel=(500, 0, 0)),)))
+        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 1), vel=(500, 0, 0)),)), check_start=True)
     with pytest.raises(SceneError, match="spinning at 1000 rad/s"):
-        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 1), angvel=(0, 0, 1000)),)))
+        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, 1), angvel=(0, 0, 1000)),)), check_start=True)
 
 
 def test_an_inertia_that_is_not_positive_definite_is_refused(tmp_path, ball, capsys):
@@ -254,7 +254,7 @@ def test_each_non_physical_input_names_its_own_cause(ball):
     with pytest.raises(SceneError, match="quat must not be all zeros"):
         DanoBody("ball", ball, quat=(0, 0, 0, 0))
     with pytest.raises(SceneError, match="5\\d.\\d* mm inside the ground"):
-        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, -0.02)),)))
+        compile_scene(Scene(bodies=(DanoBody("ball", ball, pos=(0, 0, -0.02)),)), check_start=True)
     with pytest.raises(SceneError, match="primitive 'p': mass must be > 0"):
         Primitive("p", "sphere", (0.1,), mode="free", mass=0.0)
     with pytest.raises(SceneError, match="timestep must be > 0"):

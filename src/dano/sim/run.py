@@ -56,7 +56,7 @@ class Simulation:
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "Simulation":
-        model, world, params, qpos, qvel = compile_scene(scene)
+        model, world, params, qpos, qvel = compile_scene(scene, check_start=True)
         m = mjx.put_model(model)
         d = mjx.make_data(m).replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
         return cls(scene, model, m, d, world, params)

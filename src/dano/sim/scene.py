@@ -543,12 +543,12 @@ def _budget(scene: Scene, body: DanoBody) -> int:
     return min(int(k), n)
 
 
-def compile_scene(scene: Scene, check_start: bool = True):
+def compile_scene(scene: Scene, check_start: bool = False):
     """Builds the MuJoCo model and the `World`, `Params` and initial `qpos`/`qvel` of a scene.
 
     `check_start` refuses initial states the contact cannot resolve (`_check_start`: a DANO inside
-    the ground, or crossing its own size in one step); identification turns it off, because its
-    initial states come from the data, not from the scene.
+    the ground, or crossing its own size in one step); `Simulation.from_scene` turns it on, while
+    identification leaves it off: its initial states come from the data, not from the scene.
 
     Returns:
         (mj_model, world, params, qpos0, qvel0): the `mujoco.MjModel` (use `mjx.put_model`), the

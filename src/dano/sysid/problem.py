@@ -280,7 +280,7 @@ def make_problem(
         raise SysidError(f"rotation_weight must be a finite number >= 0, got {rotation_weight}")
     observed = _observed(scene, world, recordings, rotation_length, float(rotation_weight))
     if rotation_weight > 0:
-        warn_constant_orientations(recordings, sigma)
+        warn_constant_orientations(recordings, sigma, {o.name for o in observed if o.kind == "free"})
     settle = 3.0 * sigma if settle is None else float(settle)
     windows = _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W, settle, initial)
     current_values(params, names)  # raises if a name has nothing to act on
@@ -315,12 +315,14 @@ class ConstantOrientationWarning(UserWarning):
     not resolve rotation, whose constant quaternion the fit would take as the truth."""
 
 
-def warn_constant_orientations(recordings: Sequence[Recording], sigma: float) -> None:
+def warn_constant_orientations(recordings: Sequence[Recording], sigma: float, names: set[str]) -> None:
     """Warns for each track whose orientation is constant (within 1e-6 rad) while its position
     travels more than 10 sigma (measured: a real soap track's constant quaternion moved the fitted
     friction from 0.57 to 0.44)."""
     for r in recordings:
         for name, track in r.tracks.items():
+            if name not in names:  # a slide-jointed pusher does not turn: its constant orientation is right
+                continue
             q = np.asarray(track.quat)
             turn = 2.0 * np.arccos(np.clip(np.abs(q @ q[0]), 0.0, 1.0))
             travel = float(np.max(np.linalg.norm(np.asarray(track.pos) - np.asarray(track.pos)[0], axis=1)))
