@@ -85,7 +85,8 @@ def mutated_scenes(draw) -> dict:
     doc = copy.deepcopy(BASE)
     for _ in range(draw(st.integers(1, 3))):
         table = draw(st.sampled_from(sorted(doc)))
-        target = doc[table][draw(st.integers(0, len(doc[table]) - 1))] if isinstance(doc[table], list) else doc[table]
+        items = doc[table]
+        target = items[draw(st.integers(0, len(items) - 1))] if isinstance(items, list) and items else items
         action = draw(st.sampled_from(["set", "set", "set", "delete", "drop_table", "whole"]))
         if action == "set" and isinstance(target, dict):
             target[draw(st.sampled_from([*sorted(_SCHEMA[table]), "unknown"]))] = draw(values)

@@ -72,22 +72,22 @@ def _output(*suffixes: str):
             raise UsageError(f"{text!r} must end with {' or '.join(suffixes)}")
         if path.is_dir():
             raise UsageError(f"{text!r} is a folder; give a file name")
-        if not path.parent.is_dir():
-            raise UsageError(f"folder {str(path.parent)!r} of {text!r} does not exist")
-        return text
+        return _in_a_folder(text)
 
     return _checked(check)
 
 
-def _new_folder(text: str) -> str:
-    path = Path(text)
-    if not path.parent.is_dir():
-        raise argparse.ArgumentTypeError(f"folder {str(path.parent)!r} of {text!r} does not exist")
+def _in_a_folder(text: str) -> str:
+    """A path whose folder exists (an output file, or a folder the command creates)."""
+    parent = Path(text).parent
+    if not parent.is_dir():
+        raise UsageError(f"folder {str(parent)!r} of {text!r} does not exist")
     return text
 
 
 def _numbers(n: int, form: str, quaternion_at: int | None = None):
-    """`n` comma-separated numbers (e.g. `x,y,z,qw,qx,qy,qz`); a quaternion part must be non-zero."""
+    """A check of `n` comma-separated numbers (e.g. `x,y,z,qw,qx,qy,qz`); a quaternion part must be
+    non-zero. Wrap it with `_checked` for argparse."""
 
     def check(text: str) -> tuple[float, ...]:
         try:
@@ -100,13 +100,11 @@ def _numbers(n: int, form: str, quaternion_at: int | None = None):
             raise UsageError(f"the quaternion of {text!r} is zero")
         return values
 
-    return _checked(check)
+    return check
 
 
 def _gravity(text: str):
-    if text == "fit":
-        return text
-    return _numbers(3, "gx,gy,gz (or 'fit')")(text)
+    return text if text == "fit" else _numbers(3, "gx,gy,gz (or 'fit')")(text)
 
 
 VIDEO = (".mp4", ".gif")
@@ -547,7 +545,7 @@ def parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("render-views", help="render a mesh from around it into a NeRF-synthetic dataset (with masks)")
     r.add_argument("mesh", help="mesh file (.ply .obj .stl ...)")
-    r.add_argument("-o", "--output", required=True, type=_new_folder, help="dataset folder to create")
+    r.add_argument("-o", "--output", required=True, type=_checked(_in_a_folder), help="dataset folder to create")
     r.add_argument("--views", type=_int(1), default=50)
     r.add_argument("--resolution", type=_int(8), default=64, help="image side, px (default 64)")
     r.add_argument("--scale", type=_POSITIVE, default=1.0, help="multiply lengths by this (m per unit)")
@@ -585,7 +583,7 @@ def parser() -> argparse.ArgumentParser:
     k.add_argument("--scale", type=_POSITIVE, default=1.0, help="multiply the field's lengths by this")
     k.add_argument(
         "--init",
-        type=_numbers(7, "x,y,z,qw,qx,qy,qz", 3),
+        type=_checked(_numbers(7, "x,y,z,qw,qx,qy,qz", 3)),
         help="first frame's pose x,y,z,qw,qx,qy,qz (default: a guess from the first mask)",
     )
     k.add_argument("--iterations", type=_int(1), default=60, help="Adam steps per frame (default 60)")
@@ -593,7 +591,7 @@ def parser() -> argparse.ArgumentParser:
     k.set_defaults(run=_track)
 
     d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
-    d.add_argument("--out", type=_new_folder, default="dano-demo", help="output folder (default dano-demo)")
+    d.add_argument("--out", type=_checked(_in_a_folder), default="dano-demo", help="output folder (default dano-demo)")
     d.add_argument("--resolution", type=_int(8), default=96)
     d.add_argument("--seed", type=_int(0), default=0)
     d.add_argument("--no-sim", action="store_true", help="only build and plot the DANO")

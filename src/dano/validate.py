@@ -46,10 +46,9 @@ def number(
     error: Error,
     *,
     low: float | None = None,
-    high: float | None = None,
     strict: bool = False,
 ) -> float:
-    """A finite real number in [low, high] (or (low, high] when `strict`), as a float."""
+    """A finite real number >= low (> low when `strict`), as a float."""
     if value is None or isinstance(value, bool | str | bytes) or np.ndim(value) != 0:
         raise error(_named(name) + f"must be a number, got {_show(value)}")
     try:
@@ -60,8 +59,6 @@ def number(
         raise error(_named(name) + f"must be finite, got {x}")
     if low is not None and (x < low or (strict and x == low)):
         raise error(_named(name) + f"must be {'>' if strict else '>='} {low:g}, got {x:g}")
-    if high is not None and x > high:
-        raise error(_named(name) + f"must be <= {high:g}, got {x:g}")
     return x
 
 

@@ -1,7 +1,7 @@
 """Rendering rollouts to MP4/GIF with MuJoCo's own renderer, headless (EGL or OSMesa).
 
 DANOs have no MuJoCo geoms, so each frame adds their surface points as small spheres to the
-MuJoCo scene (a subsample, coloured per body). `renderer` picks the OpenGL backend when a renderer
+MuJoCo scene (a subsample, coloured per body). `make_renderer` picks the OpenGL backend when a renderer
 is made, not at import: the user's `MUJOCO_GL` if set, MuJoCo's own choice where a display exists
 (or off Linux), else EGL and then OSMesa (headless Linux).
 """

@@ -221,7 +221,7 @@ def compiler_options(world) -> dict | None:
     return None
 
 
-def check_trajectory(traj: Trajectory, scene: Scene, world: World | None = None) -> None:
+def check_trajectory(traj: Trajectory, scene: Scene, world: World) -> None:
     """Raises `SimulationError` at the first frame with a non-finite state or a runaway speed,
     naming the degree of freedom (a DANO by name, or MuJoCo's index) and the likely cause.
 
@@ -237,11 +237,10 @@ def check_trajectory(traj: Trajectory, scene: Scene, world: World | None = None)
     speeds = np.abs(np.nan_to_num(qvel[frame], nan=np.inf))
     dof = int(np.argmax(speeds))
     owner = f"degree of freedom {dof}"
-    for name, start in zip(world.names, world.dano_qvel, strict=True) if world is not None else ():
+    for name, start in zip(world.names, world.dano_qvel, strict=True):
         if start <= dof < start + 6:
             owner = f"body {name!r}"
-    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
-    h = scene.timestep / scene.substeps
+    h = scene.step_size
     advice = (
         "raise substeps or lower impact_spring / impact_damper (the explicit step needs ~0.5 ms at Table I's stiff "
         'corners), or use integrator = "implicit"'
@@ -312,13 +311,12 @@ def audit_energy(traj: Trajectory, sim: Simulation, params=None) -> None:
         return
     f = int(np.argmax(gain))
     worst = int(np.argmax(E[f] - E[0]))
-    assert sim.scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     raise SimulationError(
         f"energy from nowhere: at frame {f} (t = {f * sim.scene.timestep:.4g} s) the scene has "
         f"{total[f] - total[0]:+.3g} J more than at the start ({(total[f] - total[0]) / scale:.1%} of its energy "
         f"scale {scale:.3g} J) with nothing driving it; most of it went to {names[worst]!r}"
         f"{penetration(sim, params, qpos[f], qvel[f], names[worst])}; "
-        f"time step {sim.scene.timestep / sim.scene.substeps:.3g} s "
+        f"time step {sim.scene.step_size:.3g} s "
         f"({sim.scene.integrator}). A body placed inside another releases the contact spring's energy; "
         "otherwise lower impact_spring or raise substeps"
         + ("" if sim.scene.integrator == "implicit" else ', or use integrator = "implicit"')
@@ -395,6 +393,5 @@ def at_rest(scene: Scene, seconds: float = 0.5) -> Scene:
 def at_interval(scene: Scene, dt: float) -> Scene:
     """The scene with one frame per `dt` s, split into substeps no longer than the scene's own
     (`scene.timestep / scene.substeps`: the contact's Jacobian needs them short, see README)."""
-    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
-    substeps = max(1, int(np.ceil(dt / (scene.timestep / scene.substeps) - 1e-9)))
+    substeps = max(1, int(np.ceil(dt / scene.step_size - 1e-9)))
     return dataclasses.replace(scene, timestep=dt, substeps=substeps)

@@ -171,17 +171,20 @@ class Robot:
         V.text(str(self.path), "robot path", SceneError)
         _set(self, "path", str(self.path))
         _check_pose(self, "robot", keys=("base_pos",), quat="base_quat")
-        qpos = V.vector(self.qpos, "robot: qpos", SceneError, len(tuple(self.qpos)))
-        _set(self, "qpos", qpos)
+        qpos = self.qpos if isinstance(self.qpos, str) else tuple(self.qpos)  # a string is refused below
+        _set(self, "qpos", V.vector(qpos, "robot: qpos", SceneError, len(qpos)))
         for key in ("kp", "kv"):
             _set(self, key, V.number(getattr(self, key), f"robot: {key}", SceneError, low=0.0))
         if self.armature is not None:
             _set(self, "armature", V.number(self.armature, "robot: armature", SceneError, low=0.0))
-        dirs = tuple(tuple(item) for item in dict(self.package_dirs).items()) if self.package_dirs else ()
-        for name, folder in dirs:
+        try:
+            dirs = dict(self.package_dirs)  # (name, folder) pairs, or a {name: folder} dict
+        except (TypeError, ValueError):
+            raise SceneError(f"robot: package_dirs must be (name, folder) pairs, got {self.package_dirs!r}") from None
+        for name, folder in dirs.items():
             V.text(name, "robot: package name", SceneError)
             V.text(str(folder), f"robot: folder of package {name!r}", SceneError)
-        _set(self, "package_dirs", tuple((name, str(folder)) for name, folder in dirs))
+        _set(self, "package_dirs", tuple((name, str(folder)) for name, folder in dirs.items()))
         _set(self, "contact_bodies", tuple(V.text(b, "robot: contact_bodies entry", SceneError)
                                            for b in self.contact_bodies))  # fmt: skip
 
@@ -331,6 +334,12 @@ class Scene:
             raise SceneError(f"robot must be a Robot (dano.sim.Robot, dano.sim.panda()), got {type(self.robot)}")
         if self.contact_budget is not None:
             _set(self, "contact_budget", V.integer(self.contact_budget, "contact_budget", SceneError, low=1))
+
+    @property
+    def step_size(self) -> float:
+        """s, one step of the integrator: `timestep / substeps`."""
+        assert self.substeps is not None  # `__post_init__` sets it for each integrator
+        return self.timestep / self.substeps
 
     @property
     def n_steps(self) -> int:
@@ -563,8 +572,7 @@ def compile_scene(scene: Scene, check_start: bool = False):
             )
     spec = mujoco.MjSpec() if scene.robot is None else _robot_spec(scene.robot)
     robot_bodies = _prepare_robot(spec, scene.robot) if scene.robot is not None else []
-    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
-    spec.option.timestep = scene.timestep / scene.substeps
+    spec.option.timestep = scene.step_size
     spec.option.gravity = list(scene.gravity)
     if scene.integrator == "implicit":
         # MuJoCo's own velocity-dependent forces (servo damping kv) implicit too, as the contact:
@@ -639,8 +647,8 @@ def compile_scene(scene: Scene, check_start: bool = False):
         ground_height=scene.ground_height,
         ground_normal=_unit(scene.ground_normal),
         prim_mass=tuple(float(p.mass) if p.mode in _MOVING else float("inf") for p in scene.primitives),
-        substeps=scene.substeps,
-        dt=scene.timestep / scene.substeps,
+        substeps=int(round(scene.timestep / scene.step_size)),
+        dt=scene.step_size,
         force_mode=scene.force_mode,
         integrator=scene.integrator,
         fallback_slot=model.nuserdata - 1,
@@ -694,8 +702,7 @@ rest depth (5 g / k). Deeper, the contact spring throws it out (1 cm deep: 4.5 m
 def _check_start(scene: Scene, world: World, overrides: dict) -> None:
     """Refuses initial states the contact cannot resolve: a DANO started inside the ground, or moving
     so fast that it crosses its own size in one step (it would tunnel through what it should hit)."""
-    assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
-    dt = scene.timestep / scene.substeps
+    dt = scene.step_size
     for body, state in zip(scene.bodies, world.danos, strict=True):
         reach = state.reach
         speed = float(np.linalg.norm(body.vel))
