@@ -20,7 +20,9 @@ def test_build_then_info_json(tmp_path, capsys):
     solid = 0.2 / 12 * np.array([b * b + c * c, a * a + c * c, a * a + b * b])
     np.testing.assert_allclose(np.diag(info["inertia"]), solid, rtol=0.02)
     assert main(["info", str(out)]) == 0
-    assert "principal moments" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "principal moments" in printed and "principal extents" in printed
+    np.testing.assert_allclose(sorted(info["principal_extents"]), [0.03, 0.06, 0.1], rtol=0.03)
 
 
 def test_scale_multiplies_lengths(tmp_path, capsys):
@@ -83,3 +85,21 @@ def test_reference_collider_source(dojo, tmp_path, capsys):
 def test_console_script_runs():
     done = subprocess.run([sys.executable, "-m", "dano.cli", "--help"], capture_output=True, text=True, check=True)
     assert "build" in done.stdout and "demo" in done.stdout
+
+
+def test_warnings_print_as_one_line_and_leave_the_filters_alone(monkeypatch, capsys, tmp_path):
+    import warnings
+
+    import dano.cli as cli
+    from dano.sysid.frames import UnitsWarning
+
+    def warns(args):
+        warnings.warn("the DANO 'soap' is 90 m long", UnitsWarning, stacklevel=2)
+
+    monkeypatch.setattr(cli, "_info", warns)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        before = warnings.showwarning
+        assert main(["info", str(tmp_path / "any.dano.npz")]) == 0
+        assert warnings.showwarning is before
+    assert capsys.readouterr().err == "dano info: UnitsWarning: the DANO 'soap' is 90 m long\n"

@@ -105,3 +105,19 @@ def test_bunny_inertia_matches_exact_polyhedral_integrals(bunny_mesh, bunny_fiel
     # Acceptance: 2 %. The remaining gap is the soft edge's curvature term and the 80^3 grid.
     assert rel_err(props.inertia, exact.moment_inertia) < 0.02
     assert np.linalg.norm(np.asarray(props.com) - exact.center_mass) < 0.002 * np.max(bunny_mesh.extents)
+
+
+def test_principal_extents_measure_a_box_turned_off_the_field_axes():
+    """The size `dano info` prints and `sysid --size` uses: a 9 x 6 x 3 cm box built turned 45° and 20°
+    off the field's axes measures 9, 6 and 3 cm along its principal axes, while the bounding box of
+    the field's own frame is larger (the frame-aligned extent the old `--size` used)."""
+    from scipy.spatial.transform import Rotation
+
+    turn = Rotation.from_euler("zy", [45.0, 20.0], degrees=True).as_matrix()
+    field = TransformedField(BoxField(size=(0.09, 0.06, 0.03)), rotation=turn)
+    obj = dano.build_dano(field, mass=0.1, n_points=2000)
+    extents = np.asarray(obj.principal_extents())
+    np.testing.assert_allclose(np.sort(extents), [0.03, 0.06, 0.09], rtol=0.03)
+    assert np.argmax(extents) == np.argmin(np.asarray(obj.principal_moments()))  # longest axis turns easiest
+    frame_box = np.ptp(np.asarray(obj.points), axis=0)
+    assert frame_box.max() > 1.1 * extents.max()

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -235,3 +236,51 @@ def test_a_constant_orientation_track_is_warned_about_and_fitted_from_positions(
     result = identify(problem, init={"friction": 0.2}, progress=False)
     assert abs(result.params["sliding_friction"] - MU) < 0.03 * MU
     assert result.rms_rotation is None and result.summary()["rms"]["rotation"] is None
+
+
+@pytest.mark.slow
+def test_nerf_units_with_size_give_the_metric_friction(slide, bar, tmp_path):
+    """Issue 18's units case: the DANO built from a NeRF without --scale and the track in the same
+    units (3x metres here). `--size` with the soap's ruler length (9 cm) rescales both: the same
+    friction as the metric fit, to 1 %."""
+    from dano.build import scale_lengths
+    from dano.sysid.data import to_metric
+
+    scene, _ = slide
+    track = slide_track(scene, fps=120.0, n_frames=33, noise=1e-3, seed=0)
+    dano.save_dano(tmp_path / "metric.dano.npz", bar)
+    dano.save_dano(tmp_path / "nerf.dano.npz", scale_lengths(bar, 3.0))
+    for units in ("metric", "nerf"):
+        (tmp_path / f"{units}.toml").write_text(
+            f'[sim]\ntimestep = 0.002\nsubsteps = 4\n[ground]\nheight = 0.0\n[[body]]\nname = "soap"\n'
+            f'dano = "{units}.dano.npz"\n[contact]\nsliding_friction = 0.2\n'
+        )
+    write_track(tmp_path / "metric.csv", track)
+    write_track(tmp_path / "nerf.csv", to_metric(track, 3.0))
+    config = SysidConfig(fit=("friction",), initial="velocity")
+    fits = {}
+    for units, size in (("metric", None), ("nerf", 0.09)):
+        files = (tmp_path / f"{units}.toml", [tmp_path / f"{units}.csv"])
+        fits[units] = identify_files(*files, dataclasses.replace(config, size=size), progress=False)[1]
+    metric, nerf = fits["metric"].params["friction"], fits["nerf"].params["friction"]
+    assert abs(metric - MU) < 0.02 * MU
+    assert nerf == pytest.approx(metric, rel=0.01)
+
+
+def test_mixed_units_are_warned_about(slide, bar):
+    """A track in mm against a metric DANO, and a DANO in mm: `UnitsWarning`, with the advice."""
+    from dano.build import scale_lengths
+    from dano.sysid.data import to_metric
+    from dano.sysid.frames import UnitsWarning
+    from dano.sysid.pipeline import prepare
+
+    scene, track = slide
+    config = SysidConfig(fit=("friction",))
+    with pytest.warns(UnitsWarning, match=r"spans .* times the DANO's .* both in metres"):
+        prepare(scene, [Recording({"object": to_metric(track, 1000.0)})], config)
+    body = dataclasses.replace(scene.bodies[0], dano=scale_lengths(bar, 1000.0))
+    with pytest.warns(UnitsWarning, match=r"is 90.* m long along its principal axes"):
+        prepare(dataclasses.replace(scene, bodies=(body,)), [Recording({"object": track})], config)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prepare(scene, [Recording({"object": track})], config)  # metric both: silent

@@ -5,6 +5,7 @@ import json
 import os
 import re
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,7 @@ def info_dict(dano) -> dict:
         "com": np.asarray(dano.com).tolist(),
         "inertia": np.asarray(dano.inertia).tolist(),
         "principal_moments": np.asarray(dano.principal_moments()).tolist(),
+        "principal_extents": np.asarray(dano.principal_extents()).tolist(),
         "n_points": dano.n_points,
         "window": np.asarray(dano.window).tolist(),
         "alpha": float(dano.alpha),
@@ -176,6 +178,7 @@ def _info(args: argparse.Namespace) -> None:
     print(f"centre of mass     {vec(d['com'])} m  (+/- {max(d['com_stderr']):.2g})")
     print("inertia about COM  " + "\n                   ".join(vec(row) for row in d["inertia"]) + "  kg m^2")
     print(f"principal moments  {vec(d['principal_moments'])} kg m^2")
+    print(f"principal extents  {vec(d['principal_extents'])} m  (size along the principal axes; sysid --size)")
     print(f"surface points     {d['n_points']}, density window [{d['window'][0]:.6g}, {d['window'][1]:.6g}]")
 
 
@@ -478,7 +481,12 @@ def parser() -> argparse.ArgumentParser:
     y.add_argument("--plot", type=_output(*PLOT), help="PNG of observed vs fitted trajectories and the loss")
     y.add_argument("--fps", type=_POSITIVE, help="frame rate of files without a t column")
     y.add_argument("--scale", type=_POSITIVE, help="metres per unit of the positions in the files")
-    y.add_argument("--size", type=_POSITIVE, help="the object's real longest side, m (DANO and data share units)")
+    y.add_argument(
+        "--size",
+        type=_POSITIVE,
+        help="the object's real longest dimension along its principal axes, m, as `dano info` "
+        "prints it in the DANO's units (DANO and data share units)",
+    )
     y.add_argument(
         "--gravity",
         type=_checked(_gravity),
@@ -631,6 +639,15 @@ def attach_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
+def _warning_line(command: str):
+    """Warnings as one line on stderr, like errors: `dano sysid: UnitsWarning: ...`."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"dano {command}: {category.__name__}: {message}", file=sys.stderr if file is None else file)
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         args = parser().parse_args(attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
@@ -643,7 +660,9 @@ def main(argv: list[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)
     compilation_cache()
     try:
-        args.run(args)
+        with warnings.catch_warnings():  # restored on the way out: the caller's process is left as it was
+            warnings.showwarning = _warning_line(args.command)
+            args.run(args)
     except DanoError as e:
         print(f"dano {args.command}: {type(e).__name__}: {e}", file=sys.stderr)
         return 2

@@ -93,6 +93,14 @@ class DANO(eqx.Module):
         """Eigenvalues of the inertia tensor, ascending, kg m^2."""
         return jnp.linalg.eigvalsh(self.inertia)
 
+    def principal_extents(self) -> Float[Array, " 3"]:
+        """The object's size along its principal axes (in `principal_moments` order), m: the spread
+        of its surface points along each eigenvector of the inertia. Unlike the bounding box of the
+        DANO's own frame, it does not grow when the field was built turned off the object's axes."""
+        _, axes = jnp.linalg.eigh(self.inertia)
+        along = self.body_points @ axes
+        return jnp.max(along, axis=0) - jnp.min(along, axis=0)
+
     def with_mass(self, mass: float) -> "DANO":
         """The same object with its mass scale chosen so that the total mass is `mass` (kg)."""
         if not (np.isfinite(mass) and mass > 0):

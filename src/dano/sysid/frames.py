@@ -9,6 +9,7 @@ frame: gravity along the given direction and the ground plane normal to it.
 """
 
 import dataclasses
+import warnings
 
 import numpy as np
 
@@ -21,10 +22,46 @@ STANDARD_GRAVITY = 9.81
 
 
 def extent(scene: Scene, name: str | None = None) -> float:
-    """The longest side of a DANO's bounding box (its surface points), in the scene's units."""
-    body = _body(scene, name)
-    points = np.asarray(body.dano.points)
-    return float(np.max(points.max(axis=0) - points.min(axis=0)))
+    """A DANO's longest dimension along its principal axes (`DANO.principal_extents`), in the scene's
+    units: what a ruler laid along the object measures, whatever frame its field was built in."""
+    return float(np.max(np.asarray(_body(scene, name).dano.principal_extents())))
+
+
+class UnitsWarning(UserWarning):
+    """The track and the DANO look as if they were in different units (or neither in metres): an
+    object of implausible size, or a track that spans too many of the object's own lengths. A slide
+    alone cannot tell (friction and scale trade off: positions ×3 fit μ ×3), so check `dano info`'s
+    principal extents and give `--scale` or `--size`."""
+
+
+SIZE_RANGE = (0.005, 3.0)
+"""m: longest principal extents of objects a tabletop experiment plausibly holds."""
+
+MAX_SPAN = 100.0
+"""A track that spans more than this many of the object's longest extents is suspect."""
+
+
+def warn_implausible_units(scene: Scene, recordings: list[Recording]) -> None:
+    """Warns (`UnitsWarning`) for each observed DANO whose longest principal extent is outside
+    `SIZE_RANGE` or whose track spans more than `MAX_SPAN` of it."""
+    sizes = {b.name: float(np.max(np.asarray(b.dano.principal_extents()))) for b in scene.bodies}
+    advice = "are the DANO and the track both in metres? (dano info prints the DANO's extents; --scale, --size)"
+    for name, size in sizes.items():
+        if not SIZE_RANGE[0] <= size <= SIZE_RANGE[1]:
+            warnings.warn(f"the DANO {name!r} is {size:.3g} m long along its principal axes: {advice}", UnitsWarning, 3)
+    for r in recordings:
+        for name, track in r.tracks.items():
+            if name not in sizes:
+                continue
+            pos = np.asarray(track.pos)
+            span = float(np.max(np.ptp(pos, axis=0)))
+            if span > MAX_SPAN * sizes[name]:
+                warnings.warn(
+                    f"the track of {name!r} spans {span:.3g} m, {span / sizes[name]:.0f} times the DANO's "
+                    f"{sizes[name]:.3g} m: {advice}",
+                    UnitsWarning,
+                    3,
+                )
 
 
 def _body(scene: Scene, name: str | None):

@@ -8,7 +8,7 @@ import numpy as np
 
 from dano.sim.scene import Scene, load_scene
 from dano.sysid.data import read_tracks
-from dano.sysid.frames import extent, plane_of_motion, scaled, with_gravity
+from dano.sysid.frames import extent, plane_of_motion, scaled, warn_implausible_units, with_gravity
 from dano.sysid.problem import Problem, Recording, SysidError, canonical, make_problem, named_after_scene
 from dano.sysid.solve import Identification, identify
 
@@ -21,8 +21,9 @@ class SysidConfig:
         fit: parameter names as the user writes them (`friction`, `mass_scale`, any contact key).
         fps: frame rate for files without a `t` column.
         scale: metres per tracker unit (positions only; the scene's DANOs are taken as metric).
-        size: the object's real longest side in m: the scene's DANO and the positions share the
-            tracker's units and are both scaled by size / (the DANO's longest side).
+        size: the object's real longest dimension along its principal axes, m: the scene's DANO and
+            the positions share the tracker's units and are both scaled by size / (the DANO's
+            longest principal extent, `dano info`).
         gravity: None (the scene's gravity and ground), a direction (3,) in the data's frame, or
             "fit" (the normal of the plane of motion, the sign that fits better at the initial guess).
         body: the scene body that files without a `body` column observe.
@@ -64,13 +65,15 @@ def load_recordings(paths: Sequence[str | Path], fps: float | None, body: str | 
 
 
 def prepare(scene: Scene, recordings: list[Recording], config: SysidConfig) -> tuple[Scene, list[Recording]]:
-    """Applies the metric scale of `config` (`scale` or `size`, see `dano.sysid.frames`)."""
+    """Applies the metric scale of `config` (`scale` or `size`, see `dano.sysid.frames`) and warns
+    when the result still looks like mixed units (`UnitsWarning`)."""
     if config.scale is not None and config.size is not None:
         raise SysidError("give the scale or the object's size, not both")
     if config.scale is not None:
         scene, recordings = scaled(scene, recordings, config.scale, objects_too=False)
     elif config.size is not None:
         scene, recordings = scaled(scene, recordings, config.size / extent(scene, config.body), objects_too=True)
+    warn_implausible_units(scene, recordings)
     return scene, recordings
 
 
