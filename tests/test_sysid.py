@@ -133,10 +133,23 @@ def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path,
     ])  # fmt: skip
     assert code == 0
     out = json.loads(capsys.readouterr().out)
-    assert set(out) == {"params", "stderr", "loss", "iterations", "converged", "message", "rms", "seconds"}
+    assert set(out) == {
+        "params", "stderr", "intervals", "interval", "loss", "iterations", "converged", "message", "rms", "seconds",
+        "flags", "adjustments",
+    }  # fmt: skip
     assert out["converged"] is True and out["iterations"] >= 1 and out["rms"]["position"] < 5e-3
-    assert set(out["params"]) == {"friction"}
+    assert set(out["params"]) == set(out["intervals"]) == {"friction"}
     assert abs(out["params"]["friction"] - MU) < 2e-3 * MU
+    # noise-free data: a narrow profile interval about the estimate, agreeing with the stderr (no flags)
+    low, high = out["intervals"]["friction"]
+    assert out["interval"] == {"method": "profile", "level": 0.95} and out["flags"] == []
+    assert low < out["params"]["friction"] < high and high - low < 0.01 * MU
+    # nothing hidden: the data's scale, the fitted gravity and ground, the simulator's step
+    adjusted = out["adjustments"]
+    assert adjusted["scale"] == {"m_per_unit": 0.01, "objects": False}
+    assert adjusted["gravity"]["fitted"] is True and adjusted["timestep"]["frame_s"] == pytest.approx(1 / 120)
+    down = R @ np.array([0.0, 0.0, -1.0])
+    assert np.dot(adjusted["gravity"]["vector"], down) == pytest.approx(9.81, rel=1e-3)
     assert out["loss"][-1] < out["loss"][0]
     assert (tmp_path / "fit.png").stat().st_size > 10_000
 

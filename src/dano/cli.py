@@ -104,6 +104,16 @@ def _numbers(n: int, form: str, quaternion_at: int | None = None):
     return check
 
 
+def _level(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise UsageError(f"must be a number, got {text!r}") from None
+    if not 0.0 < value < 1.0:
+        raise UsageError(f"a confidence level is between 0 and 1, got {text}")
+    return value
+
+
 def _gravity(text: str):
     return text if text == "fit" else _numbers(3, "gx,gy,gz (or 'fit')")(text)
 
@@ -216,7 +226,7 @@ def _sysid(args: argparse.Namespace) -> None:
         fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=args.gravity, body=args.body,
         window=args.window, initial=args.fit_initial, sigma=args.sigma, init=_parse_pairs(args.init, "--init", 1),
         bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
-        rotation_weight=args.rotation_weight, settle=args.settle,
+        rotation_weight=args.rotation_weight, settle=args.settle, interval=args.interval, level=args.level,
     )  # fmt: skip
     problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
     if args.plot:
@@ -224,15 +234,21 @@ def _sysid(args: argparse.Namespace) -> None:
     if args.json:
         print(json.dumps(result.summary()))
         return
-    print(f"{'parameter':<20} {'estimate':>12} {'stderr':>12}")
+    span = f"{result.level:.0%} interval ({result.interval})"
+    print(f"{'parameter':<20} {'estimate':>12} {'stderr':>12}   {span}")
     for name, value in result.params.items():
-        print(f"{name:<20} {value:>12.6g} {result.stderr[name]:>12.3g}")
+        low, high = result.intervals[name]
+        print(f"{name:<20} {value:>12.6g} {result.stderr[name]:>12.3g}   [{low:.6g}, {high:.6g}]")
     rotation = "not fitted" if result.rms_rotation is None else f"{np.degrees(result.rms_rotation):.3g} deg"
     print(
         f"loss {result.loss[0]:.4g} -> {result.loss[-1]:.4g} in {result.iterations} iterations ({result.message}), "
         f"{result.seconds:.2f} s; rms error: position {result.rms_position * 1e3:.3g} mm, "
         f"rotation {rotation}; {problem.n_windows} window(s) of {problem.n_frames} frames"
     )
+    for kind, change in result.adjustments.items():
+        print(f"adjusted {kind}: {json.dumps(change)}")
+    for flag in result.flags:
+        print(f"note: {flag}")
     if args.plot:
         print(f"wrote {args.plot}")
 
@@ -476,7 +492,8 @@ def parser() -> argparse.ArgumentParser:
     y.add_argument(
         "--json",
         action="store_true",
-        help='one JSON object {"params", "stderr", "loss", "iterations", "converged", "message", "rms", "seconds"}',
+        help='one JSON object {"params", "stderr", "intervals", "interval", "loss", "iterations", "converged", '
+        '"message", "rms", "seconds", "flags", "adjustments"}',
     )
     y.add_argument("--plot", type=_output(*PLOT), help="PNG of observed vs fitted trajectories and the loss")
     y.add_argument("--fps", type=_POSITIVE, help="frame rate of files without a t column")
@@ -506,6 +523,11 @@ def parser() -> argparse.ArgumentParser:
     y.add_argument("--settle", type=_float(0.0),
                    help="m: a body this near the ground at a window's start is put on it (default 3 sigma; "
                    "0: the data as they are)")  # fmt: skip
+    y.add_argument("--interval", choices=["profile", "gauss-newton"], default="profile",
+                   help="profile: refit with each parameter held, where the loss rises by the chi-square "
+                   "quantile (honest on rough or flat losses; ~6 refits per parameter); gauss-newton: "
+                   "estimate +/- z stderr, free (default profile)")  # fmt: skip
+    y.add_argument("--level", type=_checked(_level), default=0.95, help="confidence level (default 0.95)")
     y.set_defaults(run=_sysid)
 
     t = sub.add_parser("trajopt", help="trajectory optimisation: a robot pushes a DANO to a goal (constrained iLQR)")

@@ -35,6 +35,8 @@ class SysidConfig:
         rotation_weight: multiplies the rotation residuals (0: positions only).
         settle: m; a body within this of the ground at a window's start is put on it (None: 3 sigma,
             0: the data as they are; `make_problem`).
+        interval: "profile" or "gauss-newton" (`identify`).
+        level: confidence level of the intervals.
     """
 
     fit: tuple[str, ...]
@@ -51,6 +53,8 @@ class SysidConfig:
     max_steps: int = 50
     rotation_weight: float = 1.0
     settle: float | None = None
+    interval: str = "gauss-newton"
+    level: float = 0.95
 
 
 def load_recordings(paths: Sequence[str | Path], fps: float | None, body: str | None) -> list[Recording]:
@@ -62,6 +66,14 @@ def load_recordings(paths: Sequence[str | Path], fps: float | None, body: str | 
             tracks = {(body if k == "" else k): v for k, v in tracks.items()}
         out.append(Recording(tracks))
     return out
+
+
+def _scale_adjustment(scene: Scene, config: SysidConfig) -> dict:
+    if config.scale is not None:
+        return {"scale": {"m_per_unit": config.scale, "objects": False}}
+    if config.size is not None:
+        return {"scale": {"m_per_unit": config.size / extent(scene, config.body), "objects": True}}
+    return {}
 
 
 def prepare(scene: Scene, recordings: list[Recording], config: SysidConfig) -> tuple[Scene, list[Recording]]:
@@ -85,6 +97,7 @@ def identify_files(
         raise SysidError("give at least one trajectory file")
     scene = load_scene(scene_path)
     recordings = [named_after_scene(scene, r) for r in load_recordings(traj_paths, config.fps, config.body)]
+    adjustments = _scale_adjustment(scene, config)
     scene, recordings = prepare(scene, recordings, config)
     names = [canonical(n) for n in config.fit]
     by_name = dict(zip(config.fit, names, strict=True))
@@ -105,9 +118,16 @@ def identify_files(
         problem = min(candidates, key=lambda p: _initial_loss(p, init, bounds))
     else:
         problem = build(with_gravity(scene, recordings, np.asarray(config.gravity, dtype=float)))
+    if config.gravity is not None:
+        adjustments["gravity"] = {
+            "vector": list(problem.scene.gravity), "ground_normal": list(problem.scene.ground_normal),
+            "ground_height": problem.scene.ground_height, "fitted": config.gravity == "fit",
+        }  # fmt: skip
+    problem = dataclasses.replace(problem, adjustments={**adjustments, **problem.adjustments})
     result = identify(
-        problem, init=init, bounds=bounds, labels=tuple(config.fit), max_steps=config.max_steps, progress=progress
-    )
+        problem, init=init, bounds=bounds, labels=tuple(config.fit), max_steps=config.max_steps, progress=progress,
+        interval=config.interval, level=config.level,
+    )  # fmt: skip
     return problem, result
 
 

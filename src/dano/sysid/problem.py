@@ -185,6 +185,10 @@ class Problem:
     compiler_options: dict | None = None
     cache: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
     """Compiled functions of this problem's structure (reused for new data of the same shapes)."""
+    adjustments: dict = dataclasses.field(default_factory=dict, compare=False)
+    """What was changed between the data and the simulation, by kind (reported in the result):
+    `timestep` (the scene's step replaced by the frame interval), `settle` (bodies put on the ground
+    at a window's start), and what the caller adds (`scale`, `gravity`, ...)."""
 
     @property
     def n_windows(self) -> int:
@@ -266,7 +270,11 @@ def make_problem(
     for r in recordings:
         if abs(r.dt - dt) > 1e-6 * dt:
             raise SysidError(f"all trajectories must share one frame rate: {1 / r.dt:.6g} vs {1 / dt:.6g} fps")
+    given_step = scene.step_size
     scene = at_interval(scene, dt)
+    adjustments: dict = {}
+    if abs(scene.step_size - given_step) > 1e-12 * given_step:
+        adjustments["timestep"] = {"frame_s": scene.timestep, "substeps": scene.substeps, "scene_step_s": given_step}
     model, world, params, qpos0, qvel0 = compile_scene(scene, check_start=False)  # the data give the states
     m = mjx.put_model(model)
     d = mjx.make_data(m)
@@ -282,14 +290,16 @@ def make_problem(
     if rotation_weight > 0:
         warn_constant_orientations(recordings, sigma, {o.name for o in observed if o.kind == "free"})
     settle = 3.0 * sigma if settle is None else float(settle)
-    windows = _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W, settle, initial)
+    windows, settled = _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W, settle, initial)
+    if settled:
+        adjustments["settle"] = settled
     current_values(params, names)  # raises if a name has nothing to act on
     from dano.sim.run import compiler_options
 
     return Problem(
         scene=scene, world=world, model=m, data=d, params=params, windows=windows, observed=observed,
         names=names, n_frames=W, initial=initial, sigma=float(sigma), recordings=len(recordings),
-        compiler_options=compiler_options(world),
+        compiler_options=compiler_options(world), adjustments=adjustments,
     )  # fmt: skip
 
 
@@ -376,12 +386,13 @@ def named_after_scene(scene: Scene, r: Recording) -> Recording:
     return dataclasses.replace(r, tracks=tracks)
 
 
-def _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W, settle, initial) -> Windows:
-    """Cuts every recording into windows of W frame intervals and stacks them."""
+def _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W, settle, initial):
+    """Cuts every recording into windows of W frame intervals and stacks them; also returns what
+    settling changed ({"window", "body", "moved_m", "normal_speed_dropped_m_s"} per settled body)."""
     mocap_names = [p.name for p in scene.primitives if p.mode == "mocap"]
     mocap_home = np.array([p.pos for p in scene.primitives if p.mode == "mocap"], dtype=float).reshape(-1, 3)
     moving = len(world.dano_qpos) + sum(m in ("free", "actuated") for m in world.prim_mode)
-    rows = []
+    rows, report = [], []
     for r in recordings:
         T = r.n_frames
         starts = list(range(0, T - 1, W))
@@ -405,13 +416,14 @@ def _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W,
                 external[:, model.body(o.name).id] = track.wrench
         for s in starts:
             row = _window(r, observed, qpos0, qvel0, mocap, ctrl, external, s, W)
-            settled = set()
+            settled = {}
             if settle > 0 and world.ground_height is not None:
                 settled = _settle(world, params, scene.gravity, observed, row, settle)
-            row["basis"] = _basis(observed, row, settled, initial, np.asarray(world.ground_normal))
+            report += [{"window": len(rows), "body": name, **change} for name, change in settled.items()]
+            row["basis"] = _basis(observed, row, set(settled), initial, np.asarray(world.ground_normal))
             rows.append(row)
     stacked = {k: jnp.asarray(np.stack([row[k] for row in rows])) for k in rows[0] if k != "basis"}
-    return Windows(**stacked, basis=jnp.asarray(_compact([row["basis"] for row in rows])))
+    return Windows(**stacked, basis=jnp.asarray(_compact([row["basis"] for row in rows]))), report
 
 
 def _window(r: Recording, observed, qpos0, qvel0, mocap, ctrl, external, s: int, W: int) -> dict:
@@ -445,9 +457,9 @@ def _window(r: Recording, observed, qpos0, qvel0, mocap, ctrl, external, s: int,
     }
 
 
-def _settle(world: World, params: Params, gravity, observed, row: dict, margin: float) -> set[str]:
+def _settle(world: World, params: Params, gravity, observed, row: dict, margin: float) -> dict[str, dict]:
     """Puts DANOs that start within `margin` of the ground at their resting height (in place);
-    returns their names.
+    returns what changed per body name: `moved_m` along the normal, `normal_speed_dropped_m_s`.
 
     The height is where the contact spring carries the weight, k ψ = m |g·n| (ψ from the smooth
     inside indicator), found by bisection along the ground normal n with the orientation kept; the
@@ -460,7 +472,7 @@ def _settle(world: World, params: Params, gravity, observed, row: dict, margin: 
 
     n = np.asarray(world.ground_normal)
     g_n = abs(float(np.dot(gravity, n)))
-    settled = set()
+    settled = {}
     for p, (i, kind, _) in zip(params.contact, pairs(world), strict=True):
         o = next((o for o in observed if o.name == world.names[i]), None)
         if kind != "ground" or o is None or g_n == 0:
@@ -482,10 +494,11 @@ def _settle(world: World, params: Params, gravity, observed, row: dict, margin: 
         for _ in range(60):
             mid = 0.5 * (deep + free)
             deep, free = (mid, free) if load(mid) > target else (deep, mid)
-        row["qpos"][o.qpos : o.qpos + 3] = x + 0.5 * (deep + free) * n
+        shift = 0.5 * (deep + free)
+        row["qpos"][o.qpos : o.qpos + 3] = x + shift * n
         v = row["qvel"][o.qvel : o.qvel + 3]
         row["qvel"][o.qvel : o.qvel + 3] = v - (v @ n) * n
-        settled.add(o.name)
+        settled[o.name] = {"moved_m": float(shift), "normal_speed_dropped_m_s": float(v @ n)}
     return settled
 
 

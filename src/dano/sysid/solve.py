@@ -20,6 +20,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.stats import chi2
 from tqdm.auto import tqdm
 
 from dano.sysid.problem import (
@@ -51,6 +52,15 @@ class Identification:
         rms_position: root mean square position error at the estimate, m.
         rms_rotation: root mean square rotation error at the estimate, rad (None when the rotation
             residuals were weighted out, `rotation_weight=0`).
+        intervals: (low, high) per parameter at `level`: the profile-likelihood interval (refit with
+            the parameter held; where the loss rises by the χ² quantile) or θ ± z·stderr clipped to
+            the bounds (`interval="gauss-newton"`).
+        interval: how `intervals` were found, "profile" or "gauss-newton".
+        level: their confidence level.
+        flags: what the numbers above do not say: an interval that reaches a bound, a Gauss-Newton
+            stderr more than 2× off the profile interval, a lower loss found while profiling.
+        adjustments: every change between the data as given and the simulation, by kind
+            (`Problem.adjustments`, and `init` clipped into the bounds).
     """
 
     params: dict[str, float]
@@ -64,15 +74,22 @@ class Identification:
     delta: np.ndarray
     rms_position: float
     rms_rotation: float | None
+    intervals: dict[str, tuple[float, float]]
+    interval: str = "gauss-newton"
+    level: float = 0.95
+    flags: tuple[str, ...] = ()
+    adjustments: dict = dataclasses.field(default_factory=dict)
 
     def summary(self) -> dict:
-        """The `dano sysid --json` object: estimates and standard errors keyed by the names as given,
-        the loss history, iterations, whether and why it stopped, the RMS errors (position in m,
-        rotation in rad) and the wall time."""
+        """The `dano sysid --json` object: estimates, standard errors and intervals keyed by the names
+        as given, the loss history, iterations, whether and why it stopped, the RMS errors (position
+        in m, rotation in rad), the wall time and the flags."""
         return {
-            "params": self.params, "stderr": self.stderr, "loss": self.loss, "iterations": self.iterations,
-            "converged": self.converged, "message": self.message,
+            "params": self.params, "stderr": self.stderr, "intervals": {k: list(v) for k, v in self.intervals.items()},
+            "interval": {"method": self.interval, "level": self.level}, "loss": self.loss,
+            "iterations": self.iterations, "converged": self.converged, "message": self.message,
             "rms": {"position": self.rms_position, "rotation": self.rms_rotation}, "seconds": self.seconds,
+            "flags": list(self.flags), "adjustments": self.adjustments,
         }  # fmt: skip
 
 
@@ -153,6 +170,11 @@ def resolve_bounds(names, given: dict | None) -> tuple[np.ndarray, np.ndarray]:
 
 def initial_guess(problem: Problem, init: dict | None, bounds: dict | None) -> np.ndarray:
     """θ to start from: `init` where given, else the scene's values; clipped into the bounds."""
+    return _initial_guess(problem, init, bounds)[0]
+
+
+def _initial_guess(problem: Problem, init: dict | None, bounds: dict | None) -> tuple[np.ndarray, dict]:
+    """`initial_guess` and what clipping changed ({name: {"given", "used"}})."""
     lo, hi = resolve_bounds(problem.names, bounds)
     theta = current_values(problem.params, problem.names)
     init = by_canonical_name(init, problem.names, "init")
@@ -162,7 +184,10 @@ def initial_guess(problem: Problem, init: dict | None, bounds: dict | None) -> n
             if not np.isfinite(value):
                 raise SysidError(f"the initial guess for {name!r} is not finite")
             theta[k] = value
-    return np.clip(theta, lo, hi)
+    clipped = np.clip(theta, lo, hi)
+    pairs = zip(problem.names, theta, clipped, strict=True)
+    changed = {n: {"given": float(a), "used": float(b)} for n, a, b in pairs if a != b}
+    return clipped, changed
 
 
 def identify(
@@ -177,6 +202,8 @@ def identify(
     xtol: float = 1e-8,
     jac: str = "auto",
     progress: bool = True,
+    interval: str = "gauss-newton",
+    level: float = 0.95,
 ) -> Identification:
     """Fits `problem.names` (and the windows' initial states if the problem asks) by projected LM.
 
@@ -199,12 +226,23 @@ def identify(
         jac: "fwd" (forward mode, one tangent per unknown), "rev" (reverse mode, one cotangent per
             residual of a window), or "auto" (reverse when a window has more unknowns than residuals).
         progress: show a progress bar.
+        interval: "gauss-newton" (θ ± z·stderr, free) or "profile": each parameter's profile-likelihood
+            interval, where ½Σr² refitted with the parameter held rises by ½ χ²₁(level) · s² (s² the
+            residual variance, as in the stderr). It costs about 8 refits per parameter and side, and
+            it is honest where the loss is rough, flat or asymmetric: the stderr, a local curvature,
+            is flagged where it disagrees with it by more than 2×.
+        level: confidence level of the intervals.
     """
+    if interval not in ("gauss-newton", "profile"):
+        raise SysidError(f"interval must be 'gauss-newton' or 'profile', got {interval!r}")
+    if not 0.0 < level < 1.0:
+        raise SysidError(f"the confidence level must be between 0 and 1, got {level}")
     names = problem.names
     labels = names if labels is None else tuple(labels)
     p, n, s = len(names), problem.n_windows, problem.n_state
     lo, hi = resolve_bounds(names, bounds)
-    theta = initial_guess(problem, init, bounds)
+    theta, clipped = _initial_guess(problem, init, bounds)
+    adjustments = {**problem.adjustments, **({"init_clipped_to_bounds": clipped} if clipped else {})}
     y = np.concatenate([theta, np.zeros(n * s)])
     s_lo, s_hi = problem.state_bounds()
     y_lo = np.concatenate([lo, s_lo.reshape(-1)])
@@ -239,14 +277,141 @@ def identify(
             point, evaluate, loss_at, y_lo, y_hi, hold, max_steps - (len(history) - 1), history, bar, **tolerances
         )
     bar.close()
+    stderr = _stderr(point.H, point.loss, problem, p)
+    q = float(np.sqrt(chi2.ppf(level, 1)))
+    flags: list[str] = []
+    if interval == "profile":
+        variance = 2.0 * point.loss / max(problem.n_residuals - y.size, 1)
+        refit = _Refit(point, evaluate, loss_at, y_lo, y_hi, only_theta=s == 0 and p == 1, tolerances=tolerances)
+        bounds_found = []
+        for k in range(p):
+            deviance = lambda v, k=k: 2.0 * (refit(k, v) - point.loss) / max(variance, 1e-300)  # noqa: E731
+            sides = [profile_bound(deviance, point.y[k], d, q * stderr[k], (lo[k], hi[k])[d > 0], q) for d in (-1, 1)]
+            bounds_found.append((sides[0].value, sides[1].value))
+            flags += _flags(labels[k], point.y[k], stderr[k], q, sides)
+        intervals = dict(zip(labels, bounds_found, strict=True))
+    else:
+        intervals = {
+            lab: (max(float(t - q * e), float(lo[k])), min(float(t + q * e), float(hi[k])))
+            for k, (lab, t, e) in enumerate(zip(labels, point.y[:p], stderr, strict=True))
+        }
     seconds = time.perf_counter() - start
     theta, delta = point.y[:p], point.y[p:].reshape(n, s)
     return Identification(
         params={lab: float(v) for lab, v in zip(labels, theta, strict=True)},
-        stderr=dict(zip(labels, _stderr(point.H, point.loss, problem, p), strict=True)),
+        stderr=dict(zip(labels, stderr, strict=True)),
         loss=history, seconds=seconds, iterations=len(history) - 1, converged=converged, message=message,
         theta=theta, delta=delta, **_rms(problem, np.asarray(point.r)),  # pyright: ignore[reportArgumentType]
+        intervals=intervals, interval=interval, level=level, flags=tuple(flags), adjustments=adjustments,
     )  # fmt: skip
+
+
+class _Refit:
+    """½Σr² minimised over every unknown but θ_k = v (the profile), warm-started from the last
+    refit; with θ alone unknown and one parameter, just the loss at v."""
+
+    def __init__(self, best: "_Point", evaluate, loss_at, y_lo, y_hi, only_theta: bool, tolerances: dict):
+        self.best, self.evaluate, self.loss_at = best, evaluate, loss_at
+        self.y_lo, self.y_hi, self.only_theta, self.tolerances = y_lo, y_hi, only_theta, tolerances
+        self.last: dict = {}
+
+    def __call__(self, k: int, v: float) -> float:
+        start = self.last.get((k, v > self.best.y[k]), self.best).y.copy()
+        start[k] = v
+        if self.only_theta:
+            return self.loss_at(start)
+        point = _Point(start, *self.evaluate(start))
+        hold = np.zeros(start.size, bool)
+        hold[k] = True
+        quiet = tqdm(disable=True)
+        point, _, _ = _levenberg_marquardt(
+            point, self.evaluate, self.loss_at, self.y_lo, self.y_hi, hold, 20, [], quiet, **self.tolerances
+        )
+        self.last[(k, v > self.best.y[k])] = point
+        return point.loss
+
+
+@dataclasses.dataclass(frozen=True)
+class ProfileBound:
+    """One end of a profile interval: `value`; `at_limit` when the deviance stayed below the
+    threshold up to the bound (the interval is cut there); `lowest`, the smallest deviance met on the
+    way and `lowest_at` where (negative: the profile found a lower loss than the fit)."""
+
+    value: float
+    at_limit: bool
+    lowest: float
+    lowest_at: float
+
+
+def profile_bound(deviance, start: float, direction: int, step: float, limit: float, q: float, evals: int = 16):
+    """Where the signed root deviance √deviance(v) first reaches `q` going from `start` towards `limit`.
+
+    The root deviance of a well-behaved fit is close to linear in v (|v − start| / stderr), so each
+    trial extrapolates to q from the last point inside (growing the step at most 4×), then regula
+    falsi (Illinois) on the bracket, to 1 % of q or of the bracket (an end to ~1 % of the interval's
+    half-width). A rough profile is handled as it is met: the first crossing counts. `deviance(start)` is taken as 0.
+    """
+    step = abs(step) if np.isfinite(step) and step > 0 else 1e-3 * max(abs(limit - start), 1e-6)
+    clip = (lambda v: max(v, limit)) if direction < 0 else (lambda v: min(v, limit))  # noqa: E731
+    inside, z_in = start, 0.0
+    lowest, lowest_at = 0.0, start
+    v = clip(start + direction * step)
+    outside = None
+    for _ in range(evals):
+        dev = float(deviance(v))
+        if dev < lowest:
+            lowest, lowest_at = dev, v
+        z = float(np.sqrt(max(dev, 0.0)))
+        if z >= q:
+            outside = (v, z)
+            break
+        inside, z_in = v, z
+        if v == limit:
+            return ProfileBound(float(limit), True, lowest, lowest_at)
+        grow = 4.0 if z < 0.25 * q else float(np.clip(1.05 * q / z, 1.2, 4.0))
+        v = clip(start + (v - start) * grow)
+    if outside is None:  # never reached q in `evals` trials: the interval is at least this wide
+        return ProfileBound(float(inside), True, lowest, lowest_at)
+    v_out, z_out = outside
+    f_in, f_out, moved = z_in - q, z_out - q, 0  # f < 0 inside; `moved`: the end replaced last
+    for _ in range(evals):
+        if abs(v_out - inside) <= 1e-2 * abs(v_out - start):
+            break
+        v = inside + float(np.clip(f_in / (f_in - f_out), 0.05, 0.95)) * (v_out - inside)
+        dev = float(deviance(v))
+        if dev < lowest:
+            lowest, lowest_at = dev, v
+        f = float(np.sqrt(max(dev, 0.0))) - q
+        if abs(f) < 1e-2 * q:
+            return ProfileBound(float(v), False, lowest, lowest_at)
+        if f >= 0:  # Illinois: an end kept twice has its value halved, so the bracket closes from both sides
+            v_out, f_out, f_in, moved = v, f, f_in * (0.5 if moved > 0 else 1.0), 1
+        else:
+            inside, f_in, f_out, moved = v, f, f_out * (0.5 if moved < 0 else 1.0), -1
+    v = inside + float(np.clip(f_in / (f_in - f_out), 0.0, 1.0)) * (v_out - inside)
+    return ProfileBound(float(v), False, lowest, lowest_at)
+
+
+def _flags(name: str, estimate: float, stderr: float, q: float, sides: list[ProfileBound]) -> list[str]:
+    """What a reader of (estimate, stderr) would get wrong, from the two ends of the profile."""
+    out = []
+    for side, bound in zip(("low", "high"), sides, strict=True):
+        if bound.lowest < -1e-6:
+            out.append(
+                f"{name}: the profile found a lower loss at {bound.lowest_at:.6g} than at the estimate "
+                f"{estimate:.6g}: the fit stopped in a local minimum"
+            )
+        if bound.at_limit:
+            out.append(f"{name}: the {side} end of the interval is cut at {bound.value:.6g} (a bound or the search)")
+            continue
+        width, gn = abs(bound.value - estimate), q * stderr
+        if not (0.5 <= width / max(gn, 1e-300) <= 2.0):
+            out.append(
+                f"{name}: the Gauss-Newton stderr {stderr:.3g} is {'too small' if width > gn else 'too large'}: "
+                f"the profile's {side} end is {width:.3g} from the estimate, {width / max(gn, 1e-300):.3g} times "
+                f"the {q:.3g} stderr it predicts; trust the interval"
+            )
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
