@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 from dano.sysid import Recording, identify, make_problem
-from dano.sysid.data import Track, read_tracks
+from dano.sysid.data import read_tracks
 
 jax.config.update("jax_enable_x64", True)
 DEFAULT_SHARED = Path(__file__).resolve().parents[1] / ".." / "shared"
@@ -40,8 +40,7 @@ def reference(shared: Path, first: int, frames: int, window: int, substeps: int 
           f"{integrator} step, {substeps} per 2 ms frame")  # fmt: skip
     for mu in (0.1, 0.3, 0.7):
         track = read_tracks(dojo / "trajectories" / f"bunny_trajectory_{mu}.csv", fps=500.0)[""]
-        rows = slice(first, first + frames)
-        track = Track(t=track.t[rows], pos=track.pos[rows], quat=track.quat[rows], source=track.source)
+        track = track.frames(first, first + frames)
         scene = reference_drop_scene(dojo / "colliders" / "bunny_collider.npz", 0.5, integrator=integrator)
         scene = dataclasses.replace(scene, substeps=substeps)
         # the file is noise-free and the stiff bounces need exact starts: no settling onto the floor

@@ -4,6 +4,7 @@ import pytest
 
 from dano.demo import run_demo
 from dano.io import load_dano
+from dano.results import RESULT_KEYS
 
 
 @pytest.mark.slow
@@ -26,6 +27,8 @@ def test_demo_writes_a_bunny_dano_and_its_picture(tmp_path, capsys):
     # Sim-to-robot, and issue 5's "small pushing problem": the sphere pushes a 100-point bunny 8 cm
     # in 8 frames. The violation bound covers the force limits; the replay is the same dynamics.
     push = summary["trajopt_push"]
+    assert set(RESULT_KEYS) - {"message"} <= set(push)  # the JSON shape `dano sysid` shares
+    assert push["rms"] == {"position": push["final_error_m"], "rotation": None}
     assert push["converged"] and push["final_error_m"] < 0.01 and push["max_violation"] <= 1e-4
     assert push["replay_gap_m"] < 1e-9
     assert (tmp_path / "push.mp4").stat().st_size > 10_000

@@ -8,7 +8,7 @@ import pytest
 from dano.build import scale_lengths
 from dano.reference import load_reference, reference_drop_scene
 from dano.sim.run import Simulation
-from dano.sysid import Recording, Track, identify, make_problem, read_tracks
+from dano.sysid import Recording, identify, make_problem, read_tracks
 from dano.sysid.experiments import slide_scene, slide_track
 
 
@@ -41,9 +41,7 @@ def test_friction_identified_from_the_reference_trajectory(dojo):
     one at 2 ms does not). From mu = 0.6: with the inertial frame right, the loss of the tumbling
     bunny is 32 at the truth but rough, and from 0.5 (loss 397) the solver stops on a flat stretch
     (measured). examples/sysid_experiments.py reports all three files."""
-    track = read_tracks(dojo / "trajectories" / "bunny_trajectory_0.7.csv", fps=500.0)[""]
-    rows = slice(400, 901)
-    track = Track(t=track.t[rows], pos=track.pos[rows], quat=track.quat[rows])
+    track = read_tracks(dojo / "trajectories" / "bunny_trajectory_0.7.csv", fps=500.0)[""].frames(400, 901)
     scene = dataclasses.replace(reference_drop_scene(dojo / "colliders" / "bunny_collider.npz", 0.5), substeps=8)
     problem = make_problem(scene, [Recording({"bunny": track})], ["friction"], window=25, settle=0.0)
     result = identify(problem, init={"sliding_friction": 0.6}, progress=False)
@@ -60,3 +58,63 @@ def test_reference_soap_slide_friction_is_identified(dojo):
     problem = make_problem(scene, [Recording({"object": track})], ["friction"], initial="velocity")
     result = identify(problem, init={"friction": 0.2}, progress=False)
     assert result.params["sliding_friction"] == pytest.approx(0.5, rel=0.05)
+
+
+REFERENCE_SCENE = """\
+[sim]
+timestep = 0.002
+substeps = 1
+force_mode = "centroid"
+integrator = "implicit"
+
+[ground]
+height = 0.0
+
+[[body]]
+name = "bunny"
+dano = "bunny.dano.npz"
+
+[contact]
+impact_spring = 1e5
+impact_damper = 1e6
+sliding_drag = 0.01
+sliding_friction = 0.5
+torsional_friction = 0.01
+rolling_friction = 0.01
+coulomb_gain = 1.0
+indicator_width = 0.0
+"""
+
+
+@pytest.mark.slow
+def test_the_command_line_alone_identifies_the_reference_friction_as_python_does(dojo, tmp_path, capsys):
+    """Issue 18: the authors' μ = 0.3 trajectory through `dano build` and `dano sysid` only (the scene
+    as TOML, the CSV as it is) gives the Python experiment's friction (`examples/sysid_experiments.py
+    reference`, rows 400-600 here) to 1 %."""
+    import json
+
+    from dano.cli import main
+
+    collider = dojo / "colliders" / "bunny_collider.npz"
+    csv = dojo / "trajectories" / "bunny_trajectory_0.3.csv"
+    dano_file = tmp_path / "bunny.dano.npz"
+    assert main(["build", str(collider), "-o", str(dano_file), "--reference-inertia", "second-moment"]) == 0
+    (tmp_path / "scene.toml").write_text(REFERENCE_SCENE)
+    capsys.readouterr()
+    code = main([
+        "sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(csv), "--fps", "500", "--frames", "400:601",
+        "--window", "25", "--fit", "friction", "--init", "friction=0.5", "--settle", "0", "--interval", "gauss-newton",
+        "--json",
+    ])  # fmt: skip
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["adjustments"]["frames"] == [400, 601] and "settle" not in out["adjustments"]
+
+    track = read_tracks(csv, fps=500.0)[""].frames(400, 601)
+    scene = reference_drop_scene(collider, 0.5, integrator="implicit")
+    problem = make_problem(scene, [Recording({"bunny": track})], ["friction"], window=25, settle=0.0)
+    python = identify(problem, init={"friction": 0.5}, progress=False).params["sliding_friction"]
+    assert out["params"]["friction"] == pytest.approx(python, rel=0.01)
+    # the fit itself (measured): 0.349 on these 200 rows, 0.280 on rows 400-900 (README, the bias
+    # against the authors' simulator is not yet explained)
+    assert python == pytest.approx(0.3, rel=0.25)

@@ -6,7 +6,7 @@ from typing import Literal, cast
 import jax.numpy as jnp
 import numpy as np
 
-from dano.errors import DanoFileError, InvalidMassError
+from dano.errors import DanoFileError, InvalidMassError, SpecError
 from dano.fields import (
     MESH_SUFFIXES,
     AbstractField,
@@ -118,18 +118,23 @@ def scale_lengths(dano: DANO, scale: float) -> DANO:
     )
 
 
-def field_from_source(source: str, *, scale: float = 1.0, resolution: int = 96, repair: bool = False):
+def field_from_source(
+    source: str, *, scale: float = 1.0, resolution: int = 96, repair: bool = False, reference_inertia: str = "tensor"
+):
     """Opens a field (or, for a reference collider, a ready DANO) from a command-line SOURCE.
 
     SOURCE is an analytic spec (`sphere:r=0.05`), a mesh file (`.ply .obj .stl .off .glb .gltf`),
     a grid `.npz` (`density`, `bounds`), a neural checkpoint `.npz`, or a reference collider `.npz`.
-    Returns an `AbstractField`, or a `DANO` for a reference collider.
+    Returns an `AbstractField`, or a `DANO` for a reference collider (`reference_inertia`: its
+    inertia as a tensor, or "second_moment" as the reference's own simulator used it, `load_reference`).
 
     Raises:
         DanoFileError, MeshError, SpecError: unreadable or unrecognised source.
     """
     if not (scale > 0 and scale < float("inf")):
         raise InvalidMassError(f"--scale must be a positive length factor, got {scale}")
+    if reference_inertia not in ("tensor", "second_moment"):
+        raise SpecError(f"reference_inertia must be 'tensor' or 'second_moment', got {reference_inertia!r}")
     path = Path(source)
     if is_spec(source) and not path.exists():
         field = from_spec(source)
@@ -137,8 +142,10 @@ def field_from_source(source: str, *, scale: float = 1.0, resolution: int = 96, 
         return mesh_field(load_mesh(path, repair=repair, scale=scale), resolution=resolution)
     elif path.suffix.lower() == ".npz":
         data = load_npz(path)
+        if reference_inertia != "tensor" and not is_reference(data):
+            raise SpecError(f"{path} is not a reference collider: --reference-inertia applies to those only")
         if is_reference(data):
-            dano = load_reference(path)
+            dano = load_reference(path, inertia=reference_inertia)  # pyright: ignore[reportArgumentType]
             return dano if scale == 1.0 else scale_lengths(dano, scale)
         if is_neural_checkpoint(data):
             field = load_neural_field(path)

@@ -104,6 +104,19 @@ def _numbers(n: int, form: str, quaternion_at: int | None = None):
     return check
 
 
+def _frames(text: str) -> tuple[int, int | None]:
+    first, colon, stop = text.partition(":")
+    try:
+        if not colon:
+            raise ValueError
+        span = (int(first or 0), int(stop) if stop else None)
+    except ValueError:
+        raise UsageError(f"takes FIRST:STOP row numbers, e.g. 400:901, got {text!r}") from None
+    if span[0] < 0 or (span[1] is not None and span[1] <= span[0]):
+        raise UsageError(f"needs 0 <= FIRST < STOP, got {text!r}")
+    return span
+
+
 def _level(text: str) -> float:
     try:
         value = float(text)
@@ -130,7 +143,10 @@ def _build(args: argparse.Namespace) -> None:
     if args.mass is not None and args.alpha is not None:
         raise DanoError("give --mass or --alpha, not both")
     window = _parse_window(args.window)
-    source = field_from_source(args.source, scale=args.scale, resolution=args.resolution, repair=args.repair)
+    source = field_from_source(
+        args.source, scale=args.scale, resolution=args.resolution, repair=args.repair,
+        reference_inertia=args.reference_inertia.replace("-", "_"),
+    )  # fmt: skip
     if isinstance(source, DANO):
         dano = source if args.mass is None else source.with_mass(args.mass)
         if args.alpha is not None:
@@ -227,6 +243,7 @@ def _sysid(args: argparse.Namespace) -> None:
         window=args.window, initial=args.fit_initial, sigma=args.sigma, init=_parse_pairs(args.init, "--init", 1),
         bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
         rotation_weight=args.rotation_weight, settle=args.settle, interval=args.interval, level=args.level,
+        frames=args.frames,
     )  # fmt: skip
     problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
     if args.plot:
@@ -268,7 +285,9 @@ def _trajopt(args: argparse.Namespace) -> None:
     if args.video:
         render_push(push, result, args.video, progress=not args.json)
     if args.json:
-        print(json.dumps(result.summary()))
+        params = {"friction": args.friction, "goal": list(args.goal), "horizon": args.horizon, "dt": args.dt}
+        adjustments = {"goal_world": push.goal_world.tolist()}  # --goal is relative to where the object rests
+        print(json.dumps(result.summary(params, adjustments)))
         return
     s = result.solution
     print(f"{args.robot} push to {push.goal_world.round(4).tolist()} m: {s.message}")
@@ -469,6 +488,9 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--normals", choices=["autodiff", "fd"], default="autodiff")
     b.add_argument("--resolution", type=_int(4), default=96, help="grid nodes along a mesh's longest side")
     b.add_argument("--repair", action="store_true", help="make a non-watertight mesh watertight with pymeshfix")
+    b.add_argument("--reference-inertia", choices=["tensor", "second-moment"], default="tensor",
+                   help="a reference collider's inertia: the tensor (default), or its second moment as the "
+                   "reference's simulator used it (to reproduce the authors' trajectories)")  # fmt: skip
     b.set_defaults(run=_build)
 
     i = sub.add_parser("info", help="print a DANO's mass properties")
@@ -527,6 +549,8 @@ def parser() -> argparse.ArgumentParser:
                    help="profile: refit with each parameter held, where the loss rises by the chi-square "
                    "quantile (honest on rough or flat losses; ~6 refits per parameter); gauss-newton: "
                    "estimate +/- z stderr, free (default profile)")  # fmt: skip
+    y.add_argument("--frames", type=_checked(_frames), metavar="FIRST:STOP",
+                   help="rows of each file to fit, 0-based, STOP excluded (e.g. 400:901; default all)")  # fmt: skip
     y.add_argument("--level", type=_checked(_level), default=0.95, help="confidence level (default 0.95)")
     y.set_defaults(run=_sysid)
 

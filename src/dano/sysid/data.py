@@ -56,6 +56,12 @@ class Track:
         quat = poses[:, 3:7] / np.linalg.norm(poses[:, 3:7], axis=1, keepdims=True)
         return cls(t=np.arange(len(poses)) * dt, pos=poses[:, :3].copy(), quat=quat, source=source)
 
+    def frames(self, first: int, stop: int | None = None) -> "Track":
+        """Rows first … stop − 1 (0-based, as a Python slice; `stop` None: to the end)."""
+        rows = slice(first, stop)
+        wrench = None if self.wrench is None else self.wrench[rows]
+        return dataclasses.replace(self, t=self.t[rows], pos=self.pos[rows], quat=self.quat[rows], wrench=wrench)
+
     @property
     def dt(self) -> float:
         """The frame interval, s (the median spacing)."""

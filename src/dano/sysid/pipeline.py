@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from dano.sim.scene import Scene, load_scene
-from dano.sysid.data import read_tracks
+from dano.sysid.data import MIN_FRAMES, read_tracks
 from dano.sysid.frames import extent, plane_of_motion, scaled, warn_implausible_units, with_gravity
 from dano.sysid.problem import Problem, Recording, SysidError, canonical, make_problem, named_after_scene
 from dano.sysid.solve import Identification, identify
@@ -35,6 +35,7 @@ class SysidConfig:
         rotation_weight: multiplies the rotation residuals (0: positions only).
         settle: m; a body within this of the ground at a window's start is put on it (None: 3 sigma,
             0: the data as they are; `make_problem`).
+        frames: (first, stop) rows of every file to fit (0-based, stop excluded; None: all).
         interval: "profile" or "gauss-newton" (`identify`).
         level: confidence level of the intervals.
     """
@@ -55,13 +56,22 @@ class SysidConfig:
     settle: float | None = None
     interval: str = "gauss-newton"
     level: float = 0.95
+    frames: tuple[int, int | None] | None = None
 
 
-def load_recordings(paths: Sequence[str | Path], fps: float | None, body: str | None) -> list[Recording]:
-    """One `Recording` per file; `body` names the body of files without a `body` column."""
+def load_recordings(
+    paths: Sequence[str | Path], fps: float | None, body: str | None, frames: tuple[int, int | None] | None = None
+) -> list[Recording]:
+    """One `Recording` per file; `body` names the body of files without a `body` column; `frames`
+    (first, stop) keeps those rows of every file (0-based, stop excluded)."""
     out = []
     for path in paths:
         tracks = read_tracks(path, fps=fps)
+        if frames is not None:
+            tracks = {k: t.frames(*frames) for k, t in tracks.items()}
+            short = min(t.n_frames for t in tracks.values())
+            if short < MIN_FRAMES:
+                raise SysidError(f"{path}: frames {frames[0]}:{frames[1] or ''} leave {short} rows; at least 3 needed")
         if body is not None and "" in tracks:
             tracks = {(body if k == "" else k): v for k, v in tracks.items()}
         out.append(Recording(tracks))
@@ -96,8 +106,11 @@ def identify_files(
     if not traj_paths:
         raise SysidError("give at least one trajectory file")
     scene = load_scene(scene_path)
-    recordings = [named_after_scene(scene, r) for r in load_recordings(traj_paths, config.fps, config.body)]
+    loaded = load_recordings(traj_paths, config.fps, config.body, config.frames)
+    recordings = [named_after_scene(scene, r) for r in loaded]
     adjustments = _scale_adjustment(scene, config)
+    if config.frames is not None:
+        adjustments["frames"] = list(config.frames)
     scene, recordings = prepare(scene, recordings, config)
     names = [canonical(n) for n in config.fit]
     by_name = dict(zip(config.fit, names, strict=True))

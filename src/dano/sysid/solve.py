@@ -81,16 +81,16 @@ class Identification:
     adjustments: dict = dataclasses.field(default_factory=dict)
 
     def summary(self) -> dict:
-        """The `dano sysid --json` object: estimates, standard errors and intervals keyed by the names
-        as given, the loss history, iterations, whether and why it stopped, the RMS errors (position
-        in m, rotation in rad), the wall time and the flags."""
-        return {
-            "params": self.params, "stderr": self.stderr, "intervals": {k: list(v) for k, v in self.intervals.items()},
-            "interval": {"method": self.interval, "level": self.level}, "loss": self.loss,
-            "iterations": self.iterations, "converged": self.converged, "message": self.message,
-            "rms": {"position": self.rms_position, "rotation": self.rms_rotation}, "seconds": self.seconds,
-            "flags": list(self.flags), "adjustments": self.adjustments,
-        }  # fmt: skip
+        """The `dano sysid --json` object (`dano.results`), with the intervals' method and level, the
+        loss history and the flags."""
+        from dano.results import result_json
+
+        return result_json(
+            params=self.params, stderr=self.stderr, intervals=self.intervals, iterations=self.iterations,
+            converged=self.converged, message=self.message, seconds=self.seconds, rms_position=self.rms_position,
+            rms_rotation=self.rms_rotation, adjustments=self.adjustments,
+            interval={"method": self.interval, "level": self.level}, loss=self.loss, flags=list(self.flags),
+        )  # fmt: skip
 
 
 def _compiled(problem: Problem, jac: str):

@@ -284,13 +284,18 @@ class PushResult:
     replay_gap_m: float
     replay: object
 
-    def summary(self) -> dict:
+    def summary(self, params: dict | None = None, adjustments: dict | None = None) -> dict:
+        """The `dano trajopt --json` object (`dano.results`): `params` as the user gave them, `rms`
+        the object's final distance from its goal, then the push's own figures."""
+        from dano.results import result_json
+
         s = self.solution
-        return {
-            "final_error_m": self.final_error_m, "iterations": s.iterations, "seconds": s.seconds,
-            "max_violation": s.max_violation, "cost": s.cost, "converged": s.converged, "message": s.message,
-            "outer_iterations": s.outer, "ee_error_m": self.ee_error_m, "replay_gap_m": self.replay_gap_m,
-        }  # fmt: skip
+        return result_json(
+            params=params or {}, iterations=s.iterations, converged=s.converged, message=s.message,
+            seconds=s.seconds, rms_position=self.final_error_m, adjustments=adjustments,
+            final_error_m=self.final_error_m, max_violation=s.max_violation, cost=s.cost,
+            outer_iterations=s.outer, ee_error_m=self.ee_error_m, replay_gap_m=self.replay_gap_m,
+        )  # fmt: skip
 
 
 DEFAULT_OPTIONS = Options(max_iterations=150, penalty=100.0)
