@@ -37,6 +37,7 @@ class SysidConfig:
             0: the data as they are; `make_problem`).
         frames: (first, stop) rows of every file to fit (0-based, stop excluded; None: all).
         interval: "profile" or "gauss-newton" (`identify`).
+        loss: "l2", "huber" or "cauchy" (`identify`, `dano.sysid.solve.robust`).
         level: confidence level of the intervals.
     """
 
@@ -57,6 +58,7 @@ class SysidConfig:
     interval: str = "gauss-newton"
     level: float = 0.95
     frames: tuple[int, int | None] | None = None
+    loss: str = "l2"
 
 
 def load_recordings(
@@ -139,7 +141,7 @@ def identify_files(
     problem = dataclasses.replace(problem, adjustments={**adjustments, **problem.adjustments})
     result = identify(
         problem, init=init, bounds=bounds, labels=tuple(config.fit), max_steps=config.max_steps, progress=progress,
-        interval=config.interval, level=config.level,
+        interval=config.interval, level=config.level, loss=config.loss,
     )  # fmt: skip
     return problem, result
 

@@ -20,6 +20,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 from scipy.stats import chi2
 from tqdm.auto import tqdm
 
@@ -61,6 +62,7 @@ class Identification:
             stderr more than 2× off the profile interval, a lower loss found while profiling.
         adjustments: every change between the data as given and the simulation, by kind
             (`Problem.adjustments`, and `init` clipped into the bounds).
+        loss_function: "l2", "huber" or "cauchy" (`robust`).
     """
 
     params: dict[str, float]
@@ -79,6 +81,7 @@ class Identification:
     level: float = 0.95
     flags: tuple[str, ...] = ()
     adjustments: dict = dataclasses.field(default_factory=dict)
+    loss_function: str = "l2"
 
     def summary(self) -> dict:
         """The `dano sysid --json` object (`dano.results`), with the intervals' method and level, the
@@ -90,31 +93,64 @@ class Identification:
             converged=self.converged, message=self.message, seconds=self.seconds, rms_position=self.rms_position,
             rms_rotation=self.rms_rotation, adjustments=self.adjustments,
             interval={"method": self.interval, "level": self.level}, loss=self.loss, flags=list(self.flags),
+            loss_function=self.loss_function,
         )  # fmt: skip
 
 
-def _compiled(problem: Problem, jac: str):
-    """(loss, residuals and normal equations) functions of (θ, δ, windows), jitted once per problem structure."""
-    key = ("fns", jac)
+ROBUST_SCALE = 2.795
+"""σ: where the robust losses start to discount a frame's position (or rotation) error, the 95 %
+quantile of the norm of a 3-vector of unit Gaussian noise (√χ²₃(0.95)): inliers keep their weight."""
+
+
+def robust(r: Float[Array, "... 6"], loss: str, c: float = ROBUST_SCALE) -> Float[Array, "... 6"]:
+    """Residuals whose squares sum to the robust loss: each frame's position and rotation error e
+    (3-vectors, in σ) scaled by √(ρ(|e|²) / |e|²), so ½Σ|r|² = ½Σρ(|e|²) and Gauss-Newton on r is
+    the "square-rooted" robust fit (Triggs et al., Bundle adjustment, §4.3).
+
+    ρ: "l2" u; "huber" u up to c², then 2c√u − c² (linear growth: an outlier pulls with constant
+    force); "cauchy" c² log(1 + u/c²) (an outlier's pull fades). Smooth, with the gradient of the
+    identity at 0.
+    """
+    if loss == "l2":
+        return r
+    e = r.reshape(*r.shape[:-1], 2, 3)
+    u = jnp.sum(e * e, axis=-1, keepdims=True)
+    small = u < 1e-12 * c * c
+    safe = jnp.where(small, c * c, u)  # the double `where`: no NaN gradient at e = 0
+    if loss == "huber":
+        ratio = jnp.where(u <= c * c, 1.0, (2.0 * c * jnp.sqrt(safe) - c * c) / safe)
+    elif loss == "cauchy":
+        ratio = jnp.where(small, 1.0, c * c * jnp.log1p(safe / (c * c)) / safe)
+    else:
+        raise SysidError(f"the loss must be 'l2', 'huber' or 'cauchy', got {loss!r}")
+    return (e * jnp.sqrt(ratio)).reshape(r.shape)
+
+
+def _compiled(problem: Problem, jac: str, loss_name: str = "l2"):
+    """(loss, residuals and normal equations) functions of (θ, δ, windows), jitted once per problem
+    structure. The residuals returned are the plain ones (for the RMS errors); the loss and the
+    normal equations are those of `robust(r, loss_name)`."""
+    key = ("fns", jac, loss_name)
     if key in problem.cache:
         return problem.cache[key]
 
     def loss(theta, delta, windows):
-        r = residuals(problem, theta, delta, windows)
+        r = robust(residuals(problem, theta, delta, windows), loss_name)
         return 0.5 * jnp.sum(r * r)
 
     def normal_equations(theta, delta, windows):
         def one(dl, w):
             def f(th, d_):
-                r = window_residuals(problem, th, d_, w).reshape(-1)
-                return r, r
+                plain = window_residuals(problem, th, d_, w)
+                return robust(plain, loss_name).reshape(-1), plain.reshape(-1)
 
             differentiate = jax.jacfwd if jac == "fwd" else jax.jacrev
-            (Jt, Jd), r = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
-            return r, Jt, Jd
+            (Jt, Jd), plain = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
+            r = robust(plain.reshape(-1, 6), loss_name).reshape(-1)
+            return plain, r, Jt, Jd
 
-        r, Jt, Jd = jax.vmap(one)(delta, windows)
-        return r, (
+        plain, r, Jt, Jd = jax.vmap(one)(delta, windows)
+        return plain, (
             0.5 * jnp.sum(r * r),
             jnp.einsum("nm,nmp->p", r, Jt),
             jnp.einsum("nm,nms->ns", r, Jd),
@@ -204,6 +240,7 @@ def identify(
     progress: bool = True,
     interval: str = "gauss-newton",
     level: float = 0.95,
+    loss: str = "l2",
 ) -> Identification:
     """Fits `problem.names` (and the windows' initial states if the problem asks) by projected LM.
 
@@ -228,15 +265,19 @@ def identify(
         progress: show a progress bar.
         interval: "gauss-newton" (θ ± z·stderr, free) or "profile": each parameter's profile-likelihood
             interval, where ½Σr² refitted with the parameter held rises by ½ χ²₁(level) · s² (s² the
-            residual variance, as in the stderr). It costs about 8 refits per parameter and side, and
+            residual variance, as in the stderr). It costs about 3 refits per parameter and side, and
             it is honest where the loss is rough, flat or asymmetric: the stderr, a local curvature,
             is flagged where it disagrees with it by more than 2×.
         level: confidence level of the intervals.
+        loss: "l2" (least squares), or "huber" or "cauchy" for data with outliers (impacts the model
+            misses, tracking failures): see `robust`. The stderr and intervals then follow the
+            robust loss as if it were a likelihood (an approximation).
     """
     if interval not in ("gauss-newton", "profile"):
         raise SysidError(f"interval must be 'gauss-newton' or 'profile', got {interval!r}")
     if not 0.0 < level < 1.0:
         raise SysidError(f"the confidence level must be between 0 and 1, got {level}")
+    robust(jnp.zeros((1, 6)), loss)  # a bad name is refused before any work
     names = problem.names
     labels = names if labels is None else tuple(labels)
     p, n, s = len(names), problem.n_windows, problem.n_state
@@ -250,7 +291,7 @@ def identify(
     if jac == "auto":
         per_window = problem.n_residuals / max(n, 1)
         jac = "rev" if p + s > per_window else "fwd"
-    loss_fn, normal_fn = _compiled(problem, jac)
+    loss_fn, normal_fn = _compiled(problem, jac, loss)
 
     def split(y):
         return jnp.asarray(y[:p]), jnp.asarray(y[p:].reshape(n, s))
@@ -303,6 +344,7 @@ def identify(
         loss=history, seconds=seconds, iterations=len(history) - 1, converged=converged, message=message,
         theta=theta, delta=delta, **_rms(problem, np.asarray(point.r)),  # pyright: ignore[reportArgumentType]
         intervals=intervals, interval=interval, level=level, flags=tuple(flags), adjustments=adjustments,
+        loss_function=loss,
     )  # fmt: skip
 
 
