@@ -243,7 +243,7 @@ def _sysid(args: argparse.Namespace) -> None:
         window=args.window, initial=args.fit_initial, sigma=args.sigma, init=_parse_pairs(args.init, "--init", 1),
         bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
         rotation_weight=args.rotation_weight, settle=args.settle, interval=args.interval, level=args.level,
-        frames=args.frames, loss=args.loss,
+        frames=args.frames, loss=args.loss, orientation=args.orientation,
     )  # fmt: skip
     problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
     if args.plot:
@@ -552,6 +552,13 @@ def parser() -> argparse.ArgumentParser:
     y.add_argument("--loss", choices=["l2", "huber", "cauchy"], default="l2",
                    help="least squares (default), or a robust loss for outliers (impacts, tracking failures): "
                    "frames off by more than 2.8 sigma pull less (huber) or hardly at all (cauchy)")  # fmt: skip
+    y.add_argument(
+        "--orientation",
+        choices=["track", "resting"],
+        default="track",
+        help="track: the files' quaternions (default); resting: the tracker could not resolve "
+        "rotation: the object lies on the stable face and heading that fit best (positions only)",
+    )
     y.add_argument("--frames", type=_checked(_frames), metavar="FIRST:STOP",
                    help="rows of each file to fit, 0-based, STOP excluded (e.g. 400:901; default all)")  # fmt: skip
     y.add_argument("--level", type=_checked(_level), default=0.95, help="confidence level (default 0.95)")

@@ -122,3 +122,68 @@ def plane_of_motion(recordings: list[Recording]) -> np.ndarray:
     """The gravity axis (unit, sign undetermined) from the plane the observed bodies move in."""
     tracks: list[Track] = [t for r in recordings for t in r.tracks.values()]
     return motion_plane_normal(tracks)
+
+
+@dataclasses.dataclass(frozen=True)
+class RestingPose:
+    """A way the object can lie still on a table: `quat` (w, x, y, z) turns the body so that the face
+    with outward `normal` (body frame) faces down the table's normal, `height` is then the centre of
+    mass's height above the table (m)."""
+
+    quat: tuple[float, float, float, float]
+    normal: tuple[float, float, float]
+    height: float
+
+
+def resting_poses(dano, up=(0.0, 0.0, 1.0), separation_deg: float = 10.0) -> list[RestingPose]:
+    """The DANO's stable resting poses on a plane with normal `up`, lowest centre of mass first.
+
+    A face of the convex hull of the surface points is one the object can rest on when the centre of
+    mass's perpendicular foot on its plane falls inside it (the potential energy is then at a local
+    minimum). A noisy hull splits a flat face into many facets: poses whose face normals are within
+    `separation_deg` are one, the lowest kept.
+    """
+    from scipy.spatial import ConvexHull
+    from scipy.spatial.transform import Rotation
+
+    points = np.asarray(dano.body_points, dtype=np.float64)
+    hull = ConvexHull(points)
+    found: list[tuple[float, np.ndarray]] = []
+    for simplex, (*normal, offset) in zip(hull.simplices, hull.equations, strict=True):
+        n = np.asarray(normal)
+        foot = -offset * n  # the centre of mass (the origin) dropped onto the facet's plane
+        a, b, c = points[simplex]
+        # barycentric test of the foot in the triangle abc
+        v0, v1, v2 = b - a, c - a, foot - a
+        d00, d01, d11, d20, d21 = v0 @ v0, v0 @ v1, v1 @ v1, v2 @ v0, v2 @ v1
+        det = d00 * d11 - d01 * d01
+        if det <= 0:
+            continue
+        beta, gamma = (d11 * d20 - d01 * d21) / det, (d00 * d21 - d01 * d20) / det
+        if beta >= -1e-9 and gamma >= -1e-9 and beta + gamma <= 1 + 1e-9:
+            found.append((float(-offset), n))
+    found.sort(key=lambda f: f[0])
+    cos = np.cos(np.radians(separation_deg))
+    kept: list[tuple[float, np.ndarray]] = []
+    for height, n in found:
+        if all(n @ m < cos for _, m in kept):
+            kept.append((height, n))
+    up = np.asarray(up, dtype=float) / np.linalg.norm(up)
+    poses = []
+    for height, n in kept:
+        turn = Rotation.align_vectors(-up[None], n[None])[0]  # the face's normal onto -up
+        x, y, z, w = (float(v) for v in turn.as_quat())
+        poses.append(RestingPose((w, x, y, z), (float(n[0]), float(n[1]), float(n[2])), height))
+    return poses
+
+
+def lying_on(track: Track, pose: RestingPose, yaw: float, up=(0.0, 0.0, 1.0)) -> Track:
+    """The track with its orientation replaced by `pose` turned by `yaw` (rad) about `up`, constant
+    over the frames (for a tracker that could not resolve rotation; fit positions only)."""
+    from scipy.spatial.transform import Rotation
+
+    up = np.asarray(up, dtype=float) / np.linalg.norm(up)
+    w, x, y, z = pose.quat
+    q = (Rotation.from_rotvec(yaw * up) * Rotation.from_quat([x, y, z, w])).as_quat()
+    quat = np.tile(np.array([q[3], q[0], q[1], q[2]]), (track.n_frames, 1))
+    return dataclasses.replace(track, quat=quat)

@@ -8,7 +8,16 @@ import numpy as np
 
 from dano.sim.scene import Scene, load_scene
 from dano.sysid.data import MIN_FRAMES, read_tracks
-from dano.sysid.frames import extent, plane_of_motion, scaled, warn_implausible_units, with_gravity
+from dano.sysid.frames import (
+    extent,
+    RestingPose,
+    lying_on,
+    plane_of_motion,
+    resting_poses,
+    scaled,
+    warn_implausible_units,
+    with_gravity,
+)
 from dano.sysid.problem import Problem, Recording, SysidError, canonical, make_problem, named_after_scene
 from dano.sysid.solve import Identification, identify
 
@@ -38,6 +47,9 @@ class SysidConfig:
         frames: (first, stop) rows of every file to fit (0-based, stop excluded; None: all).
         interval: "profile" or "gauss-newton" (`identify`).
         loss: "l2", "huber" or "cauchy" (`identify`, `dano.sysid.solve.robust`).
+        orientation: "track" (the files' quaternions), or "resting": the tracker could not resolve
+            rotation; the object lies on one of its stable faces (`resting_poses`) at one of
+            `YAWS`, the pair that fits best at the initial guess, positions only.
         level: confidence level of the intervals.
     """
 
@@ -59,6 +71,7 @@ class SysidConfig:
     level: float = 0.95
     frames: tuple[int, int | None] | None = None
     loss: str = "l2"
+    orientation: str = "track"
 
 
 def load_recordings(
@@ -119,13 +132,21 @@ def identify_files(
     init = {by_name.get(k, canonical(k)): v for k, v in config.init.items()}
     bounds = {by_name.get(k, canonical(k)): v for k, v in config.bounds.items()}
 
-    def build(scene):
+    def build(scene, observed=None):
         return make_problem(
-            scene, recordings, names, window=config.window, initial=config.initial, sigma=config.sigma,
-            rotation_weight=config.rotation_weight, settle=config.settle,
+            scene, recordings if observed is None else observed, names, window=config.window,
+            initial=config.initial, sigma=config.sigma, settle=config.settle,
+            rotation_weight=0.0 if config.orientation == "resting" else config.rotation_weight,
         )  # fmt: skip
 
-    if config.gravity is None:
+    if config.orientation == "resting":
+        if config.gravity is not None:
+            raise SysidError(
+                "--orientation resting needs the table of the scene (its ground): without --gravity, the data "
+                "in the scene's frame"
+            )
+        problem, adjustments["orientation"] = _lying_still(scene, recordings, config, build, init, bounds)
+    elif config.gravity is None:
         problem = build(scene)
     elif isinstance(config.gravity, str) and config.gravity == "fit":
         axis = plane_of_motion(recordings)
@@ -144,6 +165,44 @@ def identify_files(
         interval=config.interval, level=config.level, loss=config.loss,
     )  # fmt: skip
     return problem, result
+
+
+YAWS = (0.0, 45.0, 90.0, 135.0)
+"""deg: headings tried for each resting face (`--orientation resting`)."""
+
+
+def _lying_still(scene: Scene, recordings: list[Recording], config: SysidConfig, build, init, bounds):
+    """The problem with the observed DANO lying on the resting face and heading (`YAWS`) that fit
+    best at the initial guess, positions only; and the report of that choice."""
+    observed = {name for r in recordings for name in r.tracks}
+    bodies = [b for b in scene.bodies if b.name in observed]
+    if len(bodies) != 1:
+        raise SysidError(f"--orientation resting needs exactly one observed DANO, got {len(bodies)}")
+    name = bodies[0].name
+    up = np.asarray(scene.ground_normal, dtype=float)
+    poses = resting_poses(bodies[0].dano, up=up)
+
+    def lying(pose: RestingPose, yaw: float) -> list[Recording]:
+        return [
+            dataclasses.replace(r, tracks={**r.tracks, name: lying_on(r.tracks[name], pose, np.radians(yaw), up)})
+            for r in recordings
+        ]
+
+    candidates = [(k, yaw) for k in range(len(poses)) for yaw in YAWS]
+    first = build(scene, lying(poses[0], YAWS[0]))
+    losses = []
+    for k, yaw in candidates:  # one structure for every candidate: the first one's compiled loss serves all
+        problem = dataclasses.replace(first, windows=build(scene, lying(poses[k], yaw)).windows)
+        losses.append(_initial_loss(problem, init, bounds))
+    if not np.isfinite(min(losses)):
+        raise SysidError("no resting orientation gives a finite loss at the initial guess")
+    k, yaw = candidates[int(np.argmin(losses))]
+    problem = dataclasses.replace(first, windows=build(scene, lying(poses[k], yaw)).windows)
+    report = {
+        "face": k, "normal": list(poses[k].normal), "yaw_deg": yaw, "quat": list(poses[k].quat),
+        "height_m": poses[k].height, "candidates": len(candidates), "rotation_weight": 0.0,
+    }  # fmt: skip
+    return problem, report
 
 
 def _initial_loss(problem: Problem, init: dict, bounds: dict) -> float:
