@@ -135,7 +135,7 @@ def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path,
     out = json.loads(capsys.readouterr().out)
     assert set(out) == {
         "params", "stderr", "intervals", "interval", "loss", "iterations", "converged", "message", "rms", "seconds",
-        "flags", "adjustments",
+        "flags", "adjustments", "loss_function",
     }  # fmt: skip
     assert out["converged"] is True and out["iterations"] >= 1 and out["rms"]["position"] < 5e-3
     assert set(out["params"]) == set(out["intervals"]) == {"friction"}
@@ -143,6 +143,7 @@ def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path,
     # noise-free data: a narrow profile interval about the estimate, agreeing with the stderr (no flags)
     low, high = out["intervals"]["friction"]
     assert out["interval"] == {"method": "profile", "level": 0.95} and out["flags"] == []
+    assert out["loss_function"] == "l2"
     assert low < out["params"]["friction"] < high and high - low < 0.01 * MU
     # nothing hidden: the data's scale, the fitted gravity and ground, the simulator's step
     adjusted = out["adjustments"]

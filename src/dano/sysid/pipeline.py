@@ -9,8 +9,8 @@ import numpy as np
 from dano.sim.scene import Scene, load_scene
 from dano.sysid.data import MIN_FRAMES, read_tracks
 from dano.sysid.frames import (
-    extent,
     RestingPose,
+    extent,
     lying_on,
     plane_of_motion,
     resting_poses,
