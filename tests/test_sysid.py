@@ -300,20 +300,31 @@ def test_mixed_units_are_warned_about(slide, bar):
         prepare(scene, [Recording({"object": track})], config)  # metric both: silent
 
 
-def test_resting_poses_of_a_bar_are_its_six_faces(bar):
+@pytest.mark.parametrize("turned", [False, True])
+def test_resting_poses_of_a_bar_are_its_six_faces(bar, turned):
+    """Also for the bar built turned 45° and 20° off its field's axes, lying on a tilted table: the
+    same six heights, each pose putting its face flat on the table."""
+    from dano.fields import TransformedField
     from dano.sysid.frames import lying_on, resting_poses
 
-    poses = resting_poses(bar)
+    turn = Rotation.from_euler("zy", [45.0, 20.0], degrees=True)
+    obj = dano.build_dano(TransformedField(BoxField(size=(0.09, 0.06, 0.03)), rotation=turn.as_matrix()),
+                          mass=0.1, n_points=600) if turned else bar  # fmt: skip
+    up = turn.apply([0.0, 0.3, 1.0]) / np.linalg.norm([0.0, 0.3, 1.0]) if turned else np.array([0.0, 0.0, 1.0])
+    poses = resting_poses(obj, up=up)
     heights = [p.height for p in poses]
     np.testing.assert_allclose(heights, [0.015, 0.015, 0.03, 0.03, 0.045, 0.045], rtol=0.03)
-    for p in poses:  # each turns its face's normal down
+    points = np.array(obj.body_points)  # a writable copy (scipy refuses read-only buffers)
+    for p in poses:  # each turns its face's normal down the table's, the face's points lowest
         w, x, y, z = p.quat
-        np.testing.assert_allclose(Rotation.from_quat([x, y, z, w]).apply(p.normal), [0, 0, -1], atol=1e-9)
+        R = Rotation.from_quat([x, y, z, w])
+        np.testing.assert_allclose(R.apply(p.normal), -up, atol=1e-9)
+        assert np.min(R.apply(points) @ up) == pytest.approx(-p.height, abs=1e-3)
     track = Track.from_poses(np.tile([0.0, 0.0, 0.02, 1.0, 0.0, 0.0, 0.0], (4, 1)), 0.01)
-    q = lying_on(track, poses[2], np.radians(30.0)).quat
+    q = lying_on(track, poses[2], np.radians(30.0), up=up).quat  # turned about the table's normal: still flat
     assert q.shape == (4, 4) and np.allclose(q, q[0])
     w, x, y, z = q[0]
-    np.testing.assert_allclose(Rotation.from_quat([x, y, z, w]).apply(poses[2].normal), [0, 0, -1], atol=1e-9)
+    np.testing.assert_allclose(Rotation.from_quat([x, y, z, w]).apply(poses[2].normal), -up, atol=1e-9)
 
 
 @pytest.mark.slow

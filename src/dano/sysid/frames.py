@@ -24,7 +24,12 @@ STANDARD_GRAVITY = 9.81
 def extent(scene: Scene, name: str | None = None) -> float:
     """A DANO's longest dimension along its principal axes (`DANO.principal_extents`), in the scene's
     units: what a ruler laid along the object measures, whatever frame its field was built in."""
-    return float(np.max(np.asarray(_body(scene, name).dano.principal_extents())))
+    return longest_extent(_body(scene, name).dano)
+
+
+def longest_extent(dano) -> float:
+    """The largest of `DANO.principal_extents`, in the DANO's units."""
+    return float(np.max(np.asarray(dano.principal_extents())))
 
 
 class UnitsWarning(UserWarning):
@@ -44,7 +49,7 @@ MAX_SPAN = 100.0
 def warn_implausible_units(scene: Scene, recordings: list[Recording]) -> None:
     """Warns (`UnitsWarning`) for each observed DANO whose longest principal extent is outside
     `SIZE_RANGE` or whose track spans more than `MAX_SPAN` of it."""
-    sizes = {b.name: float(np.max(np.asarray(b.dano.principal_extents()))) for b in scene.bodies}
+    sizes = {b.name: longest_extent(b.dano) for b in scene.bodies}
     advice = "are the DANO and the track both in metres? (dano info prints the DANO's extents; --scale, --size)"
     for name, size in sizes.items():
         if not SIZE_RANGE[0] <= size <= SIZE_RANGE[1]:

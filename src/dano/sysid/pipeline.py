@@ -93,23 +93,24 @@ def load_recordings(
     return out
 
 
-def _scale_adjustment(scene: Scene, config: SysidConfig) -> dict:
-    if config.scale is not None:
-        return {"scale": {"m_per_unit": config.scale, "objects": False}}
-    if config.size is not None:
-        return {"scale": {"m_per_unit": config.size / extent(scene, config.body), "objects": True}}
-    return {}
-
-
-def prepare(scene: Scene, recordings: list[Recording], config: SysidConfig) -> tuple[Scene, list[Recording]]:
-    """Applies the metric scale of `config` (`scale` or `size`, see `dano.sysid.frames`) and warns
-    when the result still looks like mixed units (`UnitsWarning`)."""
+def metric_scale(scene: Scene, config: SysidConfig) -> dict | None:
+    """The metric scale `config` asks for: {"m_per_unit", "objects"} (the DANOs scaled too), from
+    `scale` (positions only) or `size` (both; see `dano.sysid.frames`); None for neither."""
     if config.scale is not None and config.size is not None:
         raise SysidError("give the scale or the object's size, not both")
     if config.scale is not None:
-        scene, recordings = scaled(scene, recordings, config.scale, objects_too=False)
-    elif config.size is not None:
-        scene, recordings = scaled(scene, recordings, config.size / extent(scene, config.body), objects_too=True)
+        return {"m_per_unit": config.scale, "objects": False}
+    if config.size is not None:
+        return {"m_per_unit": config.size / extent(scene, config.body), "objects": True}
+    return None
+
+
+def prepare(scene: Scene, recordings: list[Recording], config: SysidConfig) -> tuple[Scene, list[Recording]]:
+    """Applies the metric scale of `config` (`metric_scale`) and warns when the result still looks
+    like mixed units (`UnitsWarning`)."""
+    scale = metric_scale(scene, config)
+    if scale is not None:
+        scene, recordings = scaled(scene, recordings, scale["m_per_unit"], objects_too=scale["objects"])
     warn_implausible_units(scene, recordings)
     return scene, recordings
 
@@ -123,7 +124,8 @@ def identify_files(
     scene = load_scene(scene_path)
     loaded = load_recordings(traj_paths, config.fps, config.body, config.frames)
     recordings = [named_after_scene(scene, r) for r in loaded]
-    adjustments = _scale_adjustment(scene, config)
+    scale = metric_scale(scene, config)
+    adjustments: dict = {} if scale is None else {"scale": scale}
     if config.frames is not None:
         adjustments["frames"] = list(config.frames)
     scene, recordings = prepare(scene, recordings, config)
@@ -189,15 +191,16 @@ def _lying_still(scene: Scene, recordings: list[Recording], config: SysidConfig,
         ]
 
     candidates = [(k, yaw) for k in range(len(poses)) for yaw in YAWS]
-    first = build(scene, lying(poses[0], YAWS[0]))
-    losses = []
-    for k, yaw in candidates:  # one structure for every candidate: the first one's compiled loss serves all
-        problem = dataclasses.replace(first, windows=build(scene, lying(poses[k], yaw)).windows)
-        losses.append(_initial_loss(problem, init, bounds))
+    problems, losses = [], []
+    for k, yaw in candidates:
+        problem = build(scene, lying(poses[k], yaw))
+        # one structure for every candidate: the first one's compiled functions serve them all
+        problems.append(problem if not problems else dataclasses.replace(problem, cache=problems[0].cache))
+        losses.append(_initial_loss(problems[-1], init, bounds))
     if not np.isfinite(min(losses)):
         raise SysidError("no resting orientation gives a finite loss at the initial guess")
-    k, yaw = candidates[int(np.argmin(losses))]
-    problem = dataclasses.replace(first, windows=build(scene, lying(poses[k], yaw)).windows)
+    best = int(np.argmin(losses))
+    (k, yaw), problem = candidates[best], problems[best]
     report = {
         "face": k, "normal": list(poses[k].normal), "yaw_deg": yaw, "quat": list(poses[k].quat),
         "height_m": poses[k].height, "candidates": len(candidates), "rotation_weight": 0.0,

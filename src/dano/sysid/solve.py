@@ -141,12 +141,12 @@ def _compiled(problem: Problem, jac: str, loss_name: str = "l2"):
     def normal_equations(theta, delta, windows):
         def one(dl, w):
             def f(th, d_):
-                plain = window_residuals(problem, th, d_, w)
-                return robust(plain, loss_name).reshape(-1), plain.reshape(-1)
+                plain = window_residuals(problem, th, d_, w).reshape(-1)
+                r = robust(plain.reshape(-1, 6), loss_name).reshape(-1)
+                return r, (plain, r)
 
             differentiate = jax.jacfwd if jac == "fwd" else jax.jacrev
-            (Jt, Jd), plain = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
-            r = robust(plain.reshape(-1, 6), loss_name).reshape(-1)
+            (Jt, Jd), (plain, r) = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
             return plain, r, Jt, Jd
 
         plain, r, Jt, Jd = jax.vmap(one)(delta, windows)
