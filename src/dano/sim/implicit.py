@@ -14,8 +14,8 @@ point's depth is linear in V with the geometry frozen at the pose V~ reaches, it
 D friction's dissipation potential (`dano.contact.friction`). The optimality condition is backward
 Euler, M (V' - V~) = h F(V'), and every term is convex, so the step is stable for any stiffness,
 finds the contact a fast body would reach within the step, only dissipates, and has a unique
-answer: damped Newton with a backtracking line search, differentiated through the optimality
-condition (`lax.custom_root`), so gradients are those of the exact minimiser.
+answer: damped Newton with a line search, differentiated through the optimality condition
+(`solve_implicit`), so gradients are those of the exact minimiser.
 
 The damper's overlaps are lagged (taken at the pose V~ reaches), and so are friction's normal
 forces: the first solve has no friction, each next one (`PASSES`) friction at the normal forces
@@ -33,9 +33,13 @@ The reactions on the other MuJoCo bodies (actuated primitives, robot links: driv
 are the pairs' forces with opposite sign, applied through `xfrc_applied` before `mjx.step`.
 """
 
+import functools
+
 import equinox as eqx
 import jax
+import jax.core
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from dano._mjx import mjx
@@ -99,6 +103,11 @@ def newton(objective, x0: Float[Array, " n"], tol: float | Float[Array, ""]) -> 
     the reference bunny rolling at 1 m/s: 40 Newton steps and ~200 halvings per solve; with this
     search 4-8 steps). phi' is exact where values lose their digits, near the optimum.
 
+    Each trial point is evaluated whole (value, gradient, Hessian), and the point the search
+    accepts gives the next Newton direction: a Newton step that is taken whole costs one
+    evaluation. The first iteration searches along dx = 0, which evaluates x0, so `objective` is
+    traced once (the step's compile time grows with the copies of it).
+
     Args:
         objective: x -> (value, gradient, Hessian).
         x0: the start.
@@ -106,66 +115,116 @@ def newton(objective, x0: Float[Array, " n"], tol: float | Float[Array, ""]) -> 
     """
 
     def step(state):
-        k, x, _ = state
-        f0, g, H = objective(x)
-        dx = -jnp.linalg.solve(H, g)
-        slope = g @ dx  # phi'(0) < 0
-        # Converged: the decrement is below tol, or below what rounding lets the value resolve.
-        small = -slope < tol + 64 * jnp.finfo(x.dtype).eps * jnp.abs(f0)
-
-        def dphi(t):
-            return objective(x + t * dx)[1] @ dx
+        k, x, dx, slope, _ = state
 
         def searching(c):
-            i, _, _, _, _, t, d, _ = c
+            i, found = c[0], c[-1]
+            return ~found & (i < SEARCH_ITERATIONS)
+
+        def trial(c):
+            """Evaluate at t, keep it as the bracket's low end if phi still falls there, then the
+            next t by regula falsi (Illinois: an end kept twice in a row counts half)."""
+            i, lo, d_lo, ev_lo, hi, d_hi, t, side, _, _, _ = c
+            ev_t = objective(x + t * dx)
+            d = ev_t[1] @ dx
             # phi is convex: d <= 0 at t = 1 means it falls all the way (the full Newton step).
             found = (d <= 0.0) & (t >= 1.0) | (jnp.abs(d) <= SEARCH_TOLERANCE * -slope)
-            return ~small & ~found & (i < SEARCH_ITERATIONS)
-
-        def narrow(c):
-            i, lo, d_lo, hi, d_hi, t, d, side = c
             below = d < 0.0
             lo, d_lo = jnp.where(below, t, lo), jnp.where(below, d, d_lo)
+            ev_lo = jax.tree_util.tree_map(lambda a, b: jnp.where(below, a, b), ev_t, ev_lo)
             hi, d_hi = jnp.where(below, hi, t), jnp.where(below, d_hi, d)
-            # Illinois: an end kept twice in a row counts half, so the bracket shrinks from both.
             d_lo = jnp.where(below & (side == 1), d_lo, jnp.where(~below & (side == -1), 0.5 * d_lo, d_lo))
             d_hi = jnp.where(~below & (side == -1), d_hi, jnp.where(below & (side == 1), 0.5 * d_hi, d_hi))
-            t = lo - d_lo * (hi - lo) / (d_hi - d_lo)
-            t = jnp.clip(t, lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo))
-            return i + 1, lo, d_lo, hi, d_hi, t, dphi(t), jnp.where(below, 1, -1)
+            t_next = lo - d_lo * (hi - lo) / (d_hi - d_lo)
+            t_next = jnp.clip(t_next, lo + 0.01 * (hi - lo), hi - 0.01 * (hi - lo))
+            return i + 1, lo, d_lo, ev_lo, hi, d_hi, t_next, jnp.where(below, 1, -1), t, ev_t, found
 
         one, zero = jnp.ones((), x.dtype), jnp.zeros((), x.dtype)
-        d1 = jnp.where(small, zero, dphi(one))
-        c = (0, zero, slope, one, d1, one, d1, 0)
-        i, lo, _, _, _, t, d, _ = jax.lax.while_loop(searching, narrow, c)
-        # Not found within the budget on the rising side: the bracket's low end, where phi
-        # still falls, is a guaranteed decrease (none at all if that end is still 0: stuck).
-        ok = (d <= 0.0) | (jnp.abs(d) <= SEARCH_TOLERANCE * -slope)
-        t = jnp.where(ok, t, lo)
-        stuck = ~small & (t <= 0.0)
-        return k + 1, jnp.where(stuck, x, x + t * dx), small | stuck
+        n = x.shape[0]
+        blank = (zero, jnp.zeros(n, x.dtype), jnp.zeros((n, n), x.dtype))  # the low end's, until one is found
+        c = (0, zero, slope, blank, one, zero, one, 0, zero, blank, False)
+        _, lo, _, ev_lo, _, _, _, _, t, ev_t, found = jax.lax.while_loop(searching, trial, c)
+        # Not found within the budget: the bracket's low end, where phi still falls, is a
+        # guaranteed decrease (none at all if that end is still 0: stuck).
+        t = jnp.where(found, t, lo)
+        stuck = t <= 0.0
+        f, g, H = jax.tree_util.tree_map(lambda a, b: jnp.where(found, a, b), ev_t, ev_lo)
+        x = x + t * dx
+        dx = -jnp.linalg.solve(jnp.where(stuck, jnp.eye(n, dtype=x.dtype), H), g)
+        slope = g @ dx  # phi'(0) < 0 along the next direction
+        # Converged: the decrement is below tol, or below what rounding lets the value resolve.
+        small = -slope < tol + 64 * jnp.finfo(x.dtype).eps * jnp.abs(f)
+        # converged: the last Newton step is taken whole (no evaluation: nothing follows it)
+        return k + 1, jnp.where(small & ~stuck, x + dx, x), dx, slope, small | stuck
 
     def going(state):
-        k, _, done = state
-        return (k < NEWTON_ITERATIONS) & ~done
+        k, _, _, _, done = state
+        return (k <= NEWTON_ITERATIONS) & ~done
 
-    return jax.lax.while_loop(going, step, (0, x0, False))[1]
+    zero = jnp.zeros((), x0.dtype)
+    return jax.lax.while_loop(going, step, (0, x0, jnp.zeros_like(x0), zero, False))[1]
 
 
-def _tangent_solve(g, y):
-    return jnp.linalg.solve(jax.jacobian(g)(y), y)
+def solve_implicit(forward, objective, x0: Float[Array, " n"]):
+    """(x*, aux) = forward(x0), found without derivatives (any loops: `newton`, `run_if`), x* the
+    minimiser of x -> objective(x, aux); returned with the derivatives of the exact minimiser (the
+    implicit function theorem at grad f(x*) = 0): dx* = -H^-1 (d grad f), H the objective's own
+    analytic Hessian at x* and d grad f the gradient's change with everything `objective` closes
+    over. That is one forward pass of the gradient per tangent; `lax.custom_root` also linearised
+    the gradient in x and transposed it to rebuild H (jacrev), which dominated the step's
+    derivatives and their compile time. `aux` (booleans) has no derivative."""
+    closed_f, consts_f = _hoisted(forward, x0)
+    aux = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(forward, x0)[1])
+    closed_o, consts_o = _hoisted(objective, x0, aux)
+    return _solved(closed_f, closed_o, len(consts_f), x0, *consts_f, *consts_o)
+
+
+def _hoisted(fun, *example):
+    """fun as a function of its arguments followed by every traced value it closes over, and those
+    values (`jax.closure_convert` hoists only the differentiable ones; a custom derivative rule
+    must not close over any tracer, integer ones included)."""
+    closed, shape = jax.make_jaxpr(fun, return_shape=True)(*example)
+    out_tree = jax.tree_util.tree_structure(shape)
+    traced = [isinstance(c, jax.core.Tracer) for c in closed.consts]
+    hoisted = [c for c, t in zip(closed.consts, traced, strict=True) if t]
+    fixed = [c for c, t in zip(closed.consts, traced, strict=True) if not t]
+
+    def converted(*args):
+        given, extra = args[: len(example)], iter(args[len(example) :])
+        plain = iter(fixed)
+        consts = [next(extra) if t else next(plain) for t in traced]
+        out = jax.core.eval_jaxpr(closed.jaxpr, consts, *jax.tree_util.tree_leaves(given))
+        return jax.tree_util.tree_unflatten(out_tree, out)
+
+    return converted, hoisted
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(0, 1, 2))
+def _solved(forward, objective, n_forward: int, x0, *consts):
+    del objective
+    return forward(x0, *consts[:n_forward])
+
+
+@_solved.defjvp
+def _solved_jvp(forward, objective, n_forward: int, primals, tangents):
+    x0, *consts = primals
+    x, aux = forward(x0, *consts[:n_forward])
+    mine = tuple(consts[n_forward:])
+    (_, _, H), (_, dg, _) = jax.jvp(lambda *c: objective(x, aux, *c), mine, tuple(tangents[1 + n_forward :]))
+    no_tangent = jax.tree_util.tree_map(lambda a: np.zeros(np.shape(a), jax.dtypes.float0), aux)
+    return (x, aux), (-jnp.linalg.solve(H, dg), no_tangent)
 
 
 def minimize_convex(objective, x0: Float[Array, " n"], tol: float | Float[Array, ""]) -> Float[Array, " n"]:
-    """`newton`, differentiable through the optimality condition grad f(x*) = 0 (`lax.custom_root`),
+    """`newton`, differentiable through the optimality condition grad f(x*) = 0 (`solve_implicit`),
     not through the iterations."""
-    return jax.lax.custom_root(lambda x: objective(x)[1], x0, lambda _, x: newton(objective, x, tol), _tangent_solve)
+    return solve_implicit(lambda x: (newton(objective, x, tol), None), lambda x, _: objective(x), x0)[0]
 
 
 def run_if(pred: Bool[Array, ""], fn, x):
     """fn(x) where pred, else x: a loop that runs once or not at all, so under `vmap` fn runs only
     when some element needs it (a `lax.cond` there would run it always). Not reverse-differentiable;
-    use it in a `custom_root` solve, or for a decision that is not differentiated (a boolean)."""
+    use it in a `solve_implicit` forward solve, or for a decision that is not differentiated."""
     return jax.lax.while_loop(lambda c: c[0], lambda c: (jnp.zeros_like(c[0]), fn(c[1])), (pred, x))[1]
 
 
@@ -434,20 +493,22 @@ def implicit_step(
                 sets = full()
                 return (minimize_convex(objective(sets, with_friction(sets, V_before, on)), x0, tol), over), V_before
             small = objective(sparse, with_friction(sparse, V_before, on))
-            trial = newton(small, jax.lax.stop_gradient(x0), tol)
-            over = over | missed(trial)  # once over, the rest of the step is dense: its friction needs all points
 
             def dense():
                 sets = full()
                 return objective(sets, with_friction(sets, V_before, on))
 
-            def optimality(V):
-                return jax.lax.cond(over, lambda V: dense()(V)[1], lambda V: small(V)[1], V)
+            def forward(x):
+                """Over the active sets, then over all points once a dropped point turns out live (once
+                over, the rest of the step is dense: its friction needs all the points)."""
+                trial = newton(small, x, tol)
+                now_over = over | missed(trial)
+                return run_if(now_over, lambda x: newton(dense(), x, tol), trial), now_over
 
-            def solve(_, x):
-                return run_if(over, lambda x: newton(dense(), x, tol), x)
+            def solved_over(V, now_over):  # the objective that was minimised
+                return jax.lax.cond(now_over, lambda V: dense()(V), small, V)
 
-            return (jax.lax.custom_root(optimality, trial, solve, _tangent_solve), over), V_before
+            return solve_implicit(forward, solved_over, x0), V_before
 
         last_on = jnp.asarray(float(PASSES > 1), V_free.dtype)
 

@@ -593,7 +593,18 @@ def residuals(
 ) -> Float[Array, "n w b 6"]:
     """Residuals of all windows (vmapped; `problem.windows` unless given): the objective is ½ Σ r²."""
     windows = problem.windows if windows is None else windows
-    return jax.vmap(lambda dl, w: window_residuals(problem, theta, dl, w))(delta, windows)
+    return over_windows(lambda dl, w: window_residuals(problem, theta, dl, w), delta, windows)
+
+
+def over_windows(fn, *batched):
+    """fn mapped over the leading axis of `batched` (pytrees of windows): `vmap`, or for a single
+    window fn itself. Under `vmap` the step's branches (`lax.cond`: contact or none, the broad
+    phase) become selects that run both sides, and the compile sees the batching of every loop: a
+    33-frame slide's normal equations traced in 6.6 s vmapped and ran 0.73 s per call."""
+    if jax.tree_util.tree_leaves(batched)[0].shape[0] != 1:
+        return jax.vmap(fn)(*batched)
+    out = fn(*jax.tree_util.tree_map(lambda x: x[0], batched))
+    return jax.tree_util.tree_map(lambda x: x[None], out)
 
 
 def simulate_window(
@@ -612,6 +623,9 @@ def simulate_window(
 def simulate_windows(problem: Problem, theta, delta) -> Float[Array, "n f nq"]:
     """qpos (n, W + 1, nq) of every window's simulation (its initial state first), for plots and reports."""
     if "simulate" not in problem.cache:
-        batched = jax.vmap(lambda th, dl, w: simulate_window(problem, th, dl, w), in_axes=(None, 0, 0))
+
+        def batched(th, dl, w):
+            return over_windows(lambda dl, w: simulate_window(problem, th, dl, w), dl, w)
+
         problem.cache["simulate"] = jax.jit(batched, compiler_options=problem.compiler_options)
     return problem.cache["simulate"](jnp.asarray(theta), jnp.asarray(delta), problem.windows)

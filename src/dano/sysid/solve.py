@@ -30,6 +30,7 @@ from dano.sysid.problem import (
     SysidError,
     canonical,
     current_values,
+    over_windows,
     residuals,
     window_residuals,
 )
@@ -145,11 +146,15 @@ def _compiled(problem: Problem, jac: str, loss_name: str = "l2"):
                 r = robust(plain.reshape(-1, 6), loss_name).reshape(-1)
                 return r, (plain, r)
 
+            if jac == "fwd" and theta.shape[0] + dl.shape[0] == 1:  # one tangent: a jvp, nothing batched
+                (r, (plain, _)), (dr, _) = jax.jvp(f, (theta, dl), (jnp.ones_like(theta), jnp.ones_like(dl)))
+                column = dr[:, None]
+                return plain, r, column[:, : theta.shape[0]], column[:, theta.shape[0] :]
             differentiate = jax.jacfwd if jac == "fwd" else jax.jacrev
             (Jt, Jd), (plain, r) = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
             return plain, r, Jt, Jd
 
-        plain, r, Jt, Jd = jax.vmap(one)(delta, windows)
+        plain, r, Jt, Jd = over_windows(one, delta, windows)
         return plain, (
             0.5 * jnp.sum(r * r),
             jnp.einsum("nm,nmp->p", r, Jt),
