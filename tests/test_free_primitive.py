@@ -60,3 +60,28 @@ def test_a_free_sphere_pushes_a_resting_box_without_an_energy_error(box):
     traj = sim.run(250)  # raises SimulationError if energy appears
     moved = np.linalg.norm(np.asarray(traj.qpos[-1, :2] - traj.qpos[0, :2]))
     assert 1e-3 < moved < 0.05  # pushed a few mm to cm (not thrown)
+
+
+@pytest.mark.parametrize("push", [0.0, 2.0])  # coasting, and driven by its motors (N along x)
+def test_an_actuated_sphere_hitting_a_dano_in_free_space_conserves_momentum(box, push):
+    """An actuated primitive (three world slides, force motors) is solved jointly too: the pair's
+    momentum changes by exactly the motors' impulse, and a coasting one gives no energy."""
+    ball = Primitive("ball", "sphere", (0.015,), pos=(-0.08, 0.01, 0.0), mode="actuated", mass=MASSES[1],
+                     vel=(1.0, 0.0, 0.0))  # fmt: skip
+    scene = Scene(bodies=(DanoBody("box", box),), primitives=(ball,), ground_height=None, gravity=(0, 0, 0))
+    sim = Simulation.from_scene(scene)
+    frames = 150
+    traj = sim.run(frames, ctrl=np.tile([push, 0.0, 0.0], (frames, 1)))
+    qvel = np.asarray(traj.qvel)
+    momentum = MASSES[0] * qvel[:, 0:3] + MASSES[1] * qvel[:, 6:9]
+    assert qvel[-1, 0] > 0.1  # the box was hit
+    impulse = np.array([push * frames * sim.scene.step_size, 0.0, 0.0])
+    np.testing.assert_allclose(momentum[-1] - momentum[0], impulse, atol=1e-9)
+    if push == 0.0:
+        v, w = qvel[-1, 0:3], qvel[-1, 3:6]
+        e1 = (
+            0.5 * MASSES[0] * v @ v
+            + 0.5 * w @ np.asarray(box.inertia) @ w
+            + 0.5 * MASSES[1] * qvel[-1, 6:9] @ qvel[-1, 6:9]
+        )
+        assert e1 <= 0.5 * MASSES[1] * 1.0**2 * (1 + 1e-9)

@@ -29,8 +29,10 @@ its mass and inertia and its free motion V~ under gravity, and MuJoCo is handed 
 M (V' - V~) / h that takes it to V' (its own contacts with other MuJoCo geoms come on top). Held
 at V~ instead, as a partner moving at a known velocity, a light free sphere hitting a DANO gained
 energy: the reaction, integrated explicitly by MuJoCo, was not the force the DANO's solve assumed.
-The reactions on the other MuJoCo bodies (actuated primitives, robot links: driven, so not free)
-are the pairs' forces with opposite sign, applied through `xfrc_applied` before `mjx.step`.
+An actuated primitive (three world-axis slides, weight compensated, force motors) is solved the
+same way: its V~ is its velocity after its motors' force `ctrl` over the step, its angular
+velocities are held at zero. The reactions on robot links (driven by servos, so not free) are the
+pairs' forces with opposite sign, applied through `xfrc_applied` before `mjx.step`.
 """
 
 import functools
@@ -333,8 +335,9 @@ def implicit_step(
     pair_list = pairs(world)
     kin = link_motion(m, d) if world.links else None
     mates = partners(world, d, mocap_vel, kin)
-    # The unknowns V: 6 velocities per DANO, then per free primitive (solved jointly, see above).
-    free = tuple(k for k, mode in enumerate(world.prim_mode) if mode == "free")
+    # The unknowns V: 6 velocities per DANO, then per free or actuated primitive (solved jointly,
+    # see above; an actuated one slides without turning, so its 3 angular velocities are held at 0).
+    free = tuple(k for k, mode in enumerate(world.prim_mode) if mode in ("free", "actuated"))
     slot = {k: n + s for s, k in enumerate(free)}
     prim_body = [world.prim_body[k] for k in free]
     frames_all = list(frames) + [primitive_frame(world, k, d) for k in free]
@@ -344,9 +347,17 @@ def implicit_step(
     M = _block_diag([blk for mass, J in zip(masses, inertia_w, strict=True) for blk in (mass * jnp.eye(3), J)])
     n_all = len(frames_all)
     body_ids = list(world.dano_body) + prim_body
+    locked = np.zeros(6 * n_all, bool)
     V_free = []
     for i, f in enumerate(frames_all):
         ext = jnp.zeros(6) if external is None else external[body_ids[i]]
+        k = free[i - n] if i >= n else -1
+        if k >= 0 and world.prim_mode[k] == "actuated":  # weight compensated, driven by its motors
+            c = world.prim_actuator[k]
+            force = d.ctrl[c : c + 3] * m.actuator_gear[c : c + 3, 0] + ext[:3]
+            V_free.append(jnp.concatenate([f.v + h * force / masses[i], jnp.zeros(3)]))
+            locked[6 * i + 3 : 6 * i + 6] = True
+            continue
         v = f.v + h * (m.opt.gravity + ext[:3] / masses[i])
         V_free.append(jnp.concatenate([v, f.w + h * jnp.linalg.solve(inertia_w[i], ext[3:])]))
     V_free = jnp.concatenate(V_free)
@@ -430,6 +441,9 @@ def implicit_step(
                 vj, gj, Hj = pair_terms(sets, j, friction, V)
                 gj, Hj = scatter_pair(j, gj, Hj)
                 value, g, H = value + vj, g + gj, H + Hj
+            if locked.any():  # held velocities: no gradient, a unit Hessian (Newton leaves them at 0)
+                g = jnp.where(locked, 0.0, g)
+                H = jnp.where(locked[:, None] | locked[None, :], jnp.eye(6 * n_all), H)
             return value, g, H
 
         return f

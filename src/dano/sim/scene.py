@@ -408,6 +408,8 @@ class World(eqx.Module):
     prim_qpos: tuple[int, ...] = eqx.field(static=True)
     prim_qvel: tuple[int, ...] = eqx.field(static=True)
     prim_mocap: tuple[int, ...] = eqx.field(static=True)
+    prim_actuator: tuple[int, ...] = eqx.field(static=True)
+    """An actuated primitive's first force actuator (x; then y, z), or -1."""
     ground_height: float | None = eqx.field(static=True)
     ground_normal: tuple[float, float, float] = eqx.field(static=True)
     link_names: tuple[str, ...] = eqx.field(static=True)
@@ -643,6 +645,9 @@ def compile_scene(scene: Scene, check_start: bool = False):
         prim_qvel=tuple(int(model.jnt_dofadr[jnt(p.name)]) if p.mode in _MOVING else -1 for p in scene.primitives),
         prim_mocap=tuple(
             int(model.body_mocapid[model.body(p.name).id]) if p.mode == "mocap" else -1 for p in scene.primitives
+        ),
+        prim_actuator=tuple(
+            int(model.actuator(f"{p.name}_forcex").id) if p.mode == "actuated" else -1 for p in scene.primitives
         ),
         ground_height=scene.ground_height,
         ground_normal=_unit(scene.ground_normal),
