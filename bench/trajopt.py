@@ -18,7 +18,7 @@ import dano  # noqa: E402
 from dano.demo import bunny_mesh  # noqa: E402
 from dano.fields import mesh_field  # noqa: E402
 from dano.trajopt import PushTask, push_problem, solve_push  # noqa: E402
-from dano.trajopt.push import default_options  # noqa: E402
+from dano.trajopt.push import ROBOT_STEP, default_options  # noqa: E402
 
 
 def main() -> None:
@@ -43,7 +43,8 @@ def main() -> None:
         counts = (s.iterations, s.outer, s.max_violation)
         rows.append((robot, setup, cold.solution.seconds, warm_s, *counts, *errors, s.converged))
         print(f"{robot}: {s.message}", flush=True)
-    print(f"\nbunny DANO, {args.points} points, horizon {args.horizon} frames of 0.08 s (0.5 ms substeps)")
+    steps = ", ".join(f"{r} {i} {h * 1e3:g} ms" for r, (i, h) in ROBOT_STEP.items())
+    print(f"\nbunny DANO, {args.points} points, horizon {args.horizon} frames of 0.08 s (steps: {steps})")
     print(f"{'robot':8} {'setup s':>8} {'cold s':>8} {'warm s':>8} {'iters':>6} {'outer':>6} {'violation':>10} "
           f"{'error mm':>9} {'hand mm':>8} {'replay mm':>10} converged")  # fmt: skip
     for robot, setup, cold_s, warm_s, its, outer, viol, err, ee, gap, ok in rows:

@@ -18,7 +18,8 @@ Q_uu (raised when Q_uu is not positive definite or a step fails, lowered after a
 backtracking line search on the closed-loop rollout accepting a step when the cost falls by a
 fraction of the quadratic model's prediction.
 
-Every piece is jitted once per problem; the loops run in Python so a progress bar can follow them.
+Every piece is jitted once per problem (`compiled`, shared by every solve of it); the loops run in
+Python so a progress bar can follow them.
 """
 
 import dataclasses
@@ -38,9 +39,10 @@ class TrajoptError(DanoError):
     """A trajectory optimisation problem that cannot be set up as asked."""
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class OptimalControlProblem:
     """x' = f(x, u, t) with costs and constraints (see the module docstring); all pure JAX functions.
+    Hashed by identity: its compiled pieces are kept per problem (`compiled`).
 
     Attributes:
         dynamics: f(x (n,), u (m,), t) -> (n,).
@@ -144,10 +146,18 @@ def _width(fn, *args) -> int:
     return 0 if fn is None else int(jax.eval_shape(fn, *args).shape[0])
 
 
+@functools.lru_cache(maxsize=8)
+def compiled(problem: OptimalControlProblem, n: int, m: int) -> "_Compiled":
+    """The jitted pieces of `problem` for states of size n and controls of size m, built once per
+    problem: a warm start's rollouts and every later `solve` of the same problem share them (and
+    their compiled programs)."""
+    return _Compiled(problem, n, m)
+
+
 class _Compiled:
     """The jitted pieces of one problem (built once; shapes fixed by x0 and the controls)."""
 
-    def __init__(self, problem: OptimalControlProblem, n: int, m: int, jacobian_batch: int | None = None):
+    def __init__(self, problem: OptimalControlProblem, n: int, m: int):
         T = problem.horizon
         self.p = _width(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
         self.q = _width(problem.terminal_constraints, jnp.zeros(n))
@@ -183,7 +193,7 @@ class _Compiled:
             run = jax.vmap(running, in_axes=(0, 0, 0, 0, None, 0))(xs[:-1], us, ts, lam, rho, active)
             return jnp.sum(run) + terminal(xs[-1], nu, rho)
 
-        def expand(xs, us, lam, nu, rho):
+        def expand(xs, us, lam, nu, rho, jacobian_batch):
             """Dynamics Jacobians and the augmented cost's gradients and Hessians along (xs, us)."""
             jac = jax.jacfwd(problem.dynamics, argnums=(0, 1))
             if jacobian_batch is None:
@@ -254,13 +264,19 @@ class _Compiled:
             return jnp.concatenate([xs[:1], x_new], axis=0), u_new
 
         jit = functools.partial(jax.jit, compiler_options=problem.compiler_options)
-        self.rollout = jit(lambda x0, us: rollout(problem, x0, us))
         self.objective = jit(objective)
         self.violation = jit(violation)
         self.augmented = jit(augmented)
-        self.expand = jit(expand)
+        self.expand = jit(expand, static_argnums=5)
         self.backward = jit(backward)
         self.forward = jit(forward)
+        self._zeros = (jnp.zeros((T + 1, n)), jnp.zeros((T, m)), jnp.zeros((T, m, n)))
+
+    def rollout(self, x0: Array, us: Array) -> Array:
+        """The open-loop rollout (T+1, n): the closed-loop one with no feedback and no step, so the
+        dynamics are compiled once for both."""
+        xs, k, K = self._zeros
+        return self.forward(xs.at[0].set(x0), us, k, K, 0.0)[0]
 
 
 def solve(
@@ -287,7 +303,7 @@ def solve(
     if not bool(jnp.all(jnp.isfinite(x0))):
         raise TrajoptError("the initial state is not finite")
     n, m = x0.shape[0], us.shape[1]
-    fn = _Compiled(problem, n, m, options.jacobian_batch)
+    fn = compiled(problem, n, m)
     xs = fn.rollout(x0, us)
     if not bool(jnp.all(jnp.isfinite(xs))):
         raise TrajoptError("the initial controls' rollout is not finite")
@@ -340,7 +356,7 @@ def _inner(fn: _Compiled, xs, us, lam, nu, rho, reg, o: Options, history, bar, i
     while iterations < o.max_iterations:
         iterations += 1
         if expansion is None:  # kept after a rejected step: only the regularisation changes
-            expansion = fn.expand(xs, us, lam, nu, rho)
+            expansion = fn.expand(xs, us, lam, nu, rho, o.jacobian_batch)
         A, B, g, H, gT, HT = expansion
         while True:
             k, K, dV, failed = fn.backward(A, B, g, H, gT, HT, reg)

@@ -35,6 +35,12 @@ PANDA_CONTACT = ("panda_link7", "panda_hand", "panda_leftfinger", "panda_rightfi
 """The Panda links that can touch a tabletop object in the push (the rest stay > 14 cm up)."""
 PANDA_TORQUE = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 """The Panda's joint torque limits, N m (Franka's datasheet)."""
+ROBOT_STEP = {"sphere": ("implicit", 8e-3), "panda": ("explicit", 5e-4)}
+"""Each robot's default simulator step for the push: (integrator, step length in s). The sphere
+is solved jointly with the DANO by the implicit step, whose derivatives at ten 8 ms steps per
+0.08 s frame cost about a seventh of the explicit step's 160 substeps of 0.5 ms (README,
+`bench/trajopt.py`). The Panda keeps the explicit step: its links are driven by servos and their
+reactions reach MuJoCo explicitly, which longer steps would not keep stable."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,8 +49,10 @@ class PushTask:
 
     Attributes:
         goal: where the DANO's centre of mass should end, xy (m), relative to where it rests.
-        horizon: frames; dt: seconds per frame; substep: simulator step, s (≤ 0.5 ms: the contact's
-            Jacobian needs it, see README).
+        horizon: frames; dt: seconds per frame.
+        integrator, substep: the simulator's step and its length, s; None: the robot's default
+            (`ROBOT_STEP`). The explicit step needs substeps of ≤ 0.5 ms (its contact's Jacobian is
+            wrong at longer ones, see README).
         ee_goal: where the end effector should end (world, m); default where it starts.
         goal_as_constraint: the DANO's final xy as an equality constraint (True) or a cost of weight
             `goal_weight` (False). None: the robot's default, a constraint for the sphere and a cost
@@ -59,7 +67,8 @@ class PushTask:
     goal: tuple[float, float] = (0.1, 0.0)
     horizon: int = 10
     dt: float = 0.08
-    substep: float = 5e-4
+    integrator: str | None = None
+    substep: float | None = None
     ee_goal: tuple[float, float, float] | None = None
     goal_as_constraint: bool | None = None
     force_limit: float = 10.0
@@ -104,7 +113,7 @@ def push_problem(dano: DANO, robot: str = "sphere", task: PushTask = PushTask(),
     """The push of `dano` by `robot` ("sphere" or "panda") as an `OptimalControlProblem`.
 
     Raises:
-        TrajoptError: an unknown robot, a goal too close to push to, or a bad horizon.
+        TrajoptError: an unknown robot, a goal too close to push to, a bad horizon or integrator.
     """
     if robot not in ("sphere", "panda"):
         raise TrajoptError(f"robot must be 'sphere' or 'panda', got {robot!r}")
@@ -116,12 +125,19 @@ def push_problem(dano: DANO, robot: str = "sphere", task: PushTask = PushTask(),
     distance = float(np.linalg.norm(goal))
     if distance < 1e-3:
         raise TrajoptError("the goal is where the object already is: nothing to push")
-    scene = _scene(dano, robot, goal / distance, friction, task.dt, task.substep)
+    integrator, substep = ROBOT_STEP[robot]
+    integrator = task.integrator or integrator
+    substep = task.substep or (substep if integrator == ROBOT_STEP[robot][0] else 5e-4)
+    if integrator not in ("implicit", "explicit") or not substep > 0:
+        raise TrajoptError(f"integrator must be 'implicit' or 'explicit', substep > 0; got {integrator!r}, {substep}")
+    scene = _scene(dano, robot, goal / distance, friction, task.dt, substep, integrator)
     sim = Simulation.from_scene(scene)
     return _assemble(robot, task, sim, goal)
 
 
-def _scene(dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: float, substep: float) -> Scene:
+def _scene(
+    dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: float, substep: float, integrator: str
+) -> Scene:
     from dano.sysid.experiments import push_scene
 
     scene = push_scene(dano, friction, direction=tuple(direction))
@@ -135,9 +151,7 @@ def _scene(dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: f
         quat = (float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2)))
         arm = panda(base_pos=(*base, 0.0), qpos=PANDA_HOME, base_quat=quat, contact_bodies=PANDA_CONTACT)
         scene = dataclasses.replace(scene, primitives=(), robot=arm)
-    # The explicit step at `substep` (<= 0.5 ms): iLQR differentiates every substep forward, and
-    # the implicit step's Newton solves cost more per step than its longer steps save there.
-    scene = dataclasses.replace(scene, timestep=substep, substeps=1, duration=dt, integrator="explicit")
+    scene = dataclasses.replace(scene, timestep=substep, substeps=1, duration=dt, integrator=integrator)
     return at_rest(at_interval(scene, dt))
 
 
@@ -247,13 +261,12 @@ def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np
 
     iLQR needs a start in contact: from zero controls the pusher never touches the object and the
     goal has no gradient in the controls."""
-    from dano.trajopt.ilqr import rollout
+    from dano.trajopt.ilqr import compiled
 
-    def final_miss(u):
-        return jnp.linalg.norm(miss(rollout(problem, jnp.asarray(x0), u)[-1]))
-
-    jitted = jax.jit(jax.vmap(final_miss), compiler_options=problem.compiler_options)
-    misses = np.asarray(jitted(jnp.asarray(np.stack(guesses))))
+    start = jnp.asarray(x0)
+    fn = compiled(problem, start.shape[0], guesses[0].shape[1])  # the solver's own rollout, compiled once
+    # one after another: on a CPU a vmapped rollout runs no faster and compiles its own program
+    misses = np.array([float(jnp.linalg.norm(miss(fn.rollout(start, jnp.asarray(u))[-1]))) for u in guesses])
     misses = np.where(np.isfinite(misses), misses, np.inf)
     return guesses[int(np.argmin(misses))]
 
@@ -331,8 +344,8 @@ def render_push(push: PushProblem, result: PushResult, path, frames_per_step: in
 
     scene = push.sim.scene
     assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
-    if scene.substeps % frames_per_step:
-        frames_per_step = 1
+    while scene.substeps % frames_per_step:  # the largest count up to the one asked that divides the substeps
+        frames_per_step -= 1
     fine = dataclasses.replace(
         scene, timestep=scene.timestep / frames_per_step, substeps=scene.substeps // frames_per_step
     )
