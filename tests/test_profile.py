@@ -15,6 +15,7 @@ from dano.cli import CACHE_VARIABLE, compilation_cache, main
 from dano.fields import BoxField
 from dano.sim import DanoBody, Primitive, Scene
 from dano.sim.run import Simulation, profile
+from dano.sim.scene import load_scene
 from dano.sim.step import rollout
 
 
@@ -75,6 +76,36 @@ def test_skipping_mujocos_step_changes_nothing(box, monkeypatch, with_sphere):
     np.testing.assert_array_equal(np.asarray(skipped.qpos), np.asarray(taken.qpos))
     np.testing.assert_array_equal(np.asarray(skipped.qvel), np.asarray(taken.qvel))
     assert float(jnp.abs(skipped.qvel[-1, :6] - skipped.qvel[0, :6]).max()) > 0.01  # contact acted
+
+
+@pytest.mark.parametrize("collide", [False, True])
+def test_an_actuated_pusher_that_does_not_collide_is_integrated_as_mujoco_would(box, monkeypatch, collide):
+    """An actuated sphere with MuJoCo's own collisions off: the step integrates its slides itself
+    and skips `mjx.step`; forcing `mjx.step` gives the same trajectory. Colliding, it is taken."""
+    pusher = Primitive("pusher", "sphere", (0.02,), pos=(-0.06, 0, 0.025), mode="actuated", mass=0.5, collide=collide)
+    sim = _resting(box, primitives=(pusher,))
+    assert implicit.mujoco_moves(sim.world, sim.mjx_model) == collide
+    if collide:
+        return
+    ctrl = jnp.tile(jnp.array([10.0, 1.0, 0.0]), (40, 1))
+
+    def run():
+        return jax.jit(lambda d, u: rollout(sim.world, sim.params, sim.mjx_model, d, 40, ctrl=u))(sim.data, ctrl)
+
+    skipped = run()
+    monkeypatch.setattr(implicit, "mujoco_moves", lambda world, m: True)
+    taken = run()
+    np.testing.assert_allclose(np.asarray(skipped.qpos), np.asarray(taken.qpos), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(skipped.qvel), np.asarray(taken.qvel), rtol=0, atol=1e-8)
+    v = sim.world.prim_qvel[0]
+    assert float(skipped.qvel[-1, v]) < 0.9 * 10.0 / 0.5 * 40 * 0.002  # the box held it back: contact acted
+
+
+def test_a_scene_files_primitive_collide_must_be_a_bool(tmp_path):
+    path = tmp_path / "scene.toml"
+    path.write_text('[[primitive]]\nname = "p"\ntype = "sphere"\nsize = [0.02]\nmode = "actuated"\ncollide = 1\n')
+    with pytest.raises(dano.sim.SceneError, match="collide must be true or false"):
+        load_scene(path)
 
 
 def test_a_body_in_the_air_follows_the_free_motion_exactly(box):

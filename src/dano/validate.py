@@ -97,6 +97,13 @@ def choice(value: Any, name: str, error: Error, options: Iterable[str]) -> str:
     return value
 
 
+def boolean(value: Any, name: str, error: Error) -> bool:
+    """`value` if it is True or False (not 0, 1 or a string), else `error`."""
+    if not isinstance(value, bool | np.bool_):
+        raise error(f"{_named(name)}must be true or false, got {_show(value)}")
+    return bool(value)
+
+
 def text(value: Any, name: str, error: Error) -> str:
     """A non-empty string without surrounding spaces."""
     if not isinstance(value, str) or not value.strip() or value != value.strip():

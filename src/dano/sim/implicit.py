@@ -267,10 +267,11 @@ def _rotate(q: Float[Array, " 4"], R: Array, inertia: Array, L: Array, h: float)
 
 
 def mujoco_moves(world: World, m: mjx.Model) -> bool:
-    """Whether `mjx.step` moves anything the implicit step does not: degrees of freedom besides the
-    DANOs' free joints (free or actuated primitives, a robot) or actuators. Where it does not (DANOs
-    among static geometry and mocap bodies, which the step places itself), the step skips it."""
-    return m.nv > 6 * len(world.danos) or m.nu > 0
+    """Whether `mjx.step` moves anything the implicit step does not (`World.mujoco_moves`): a
+    robot, a free primitive, one that collides with MuJoCo geoms, a constraint. Where it does not
+    (DANOs among static geometry, mocap bodies and non-colliding actuated primitives, which the
+    step places or integrates itself), the step skips it."""
+    return world.mujoco_moves
 
 
 BROAD_MARGIN = 0.01
@@ -570,10 +571,15 @@ def implicit_step(
         xfrc = xfrc + external * keep[:, None]
     if mujoco_moves(world, m):
         d = mjx_step(m, d.replace(xfrc_applied=xfrc))
-    else:  # MuJoCo holds nothing that moves: the DANOs are integrated below, time advances
+        qpos, qvel = d.qpos, d.qvel
+    else:  # MuJoCo would move nothing but actuated slides: integrated here, as MuJoCo would, time advances
         d = d.replace(time=d.time + h, xfrc_applied=xfrc)
+        qpos, qvel = d.qpos, d.qvel
+        for s, k in enumerate(free):  # all actuated (`mujoco_moves`): V' is their velocity, Euler in position
+            a, v, lin = world.prim_qpos[k], world.prim_qvel[k], V_next[6 * (n + s) : 6 * (n + s) + 3]
+            qpos = qpos.at[a : a + 3].add(h * lin)
+            qvel = qvel.at[v : v + 3].set(lin)
 
-    qpos, qvel = d.qpos, d.qvel
     V_next = V_next[: 6 * n].reshape(n, 6)
     for i, (a, v) in enumerate(zip(world.dano_qpos, world.dano_qvel, strict=True)):
         f, b = frames[i], bodies[i]

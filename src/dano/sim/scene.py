@@ -102,6 +102,11 @@ class Primitive:
     Attributes:
         size: sphere (radius,); capsule (radius, half_length); box (hx, hy, hz) half extents; m.
         mass: kg, for free primitives (inertia of a solid of that shape).
+        collide: whether MuJoCo's own contacts apply to it (with the ground and other primitives);
+            DANO contacts always do. An actuated end effector kept clear of them some other way
+            (a constraint, a horizontal push) can turn them off: with nothing else for MuJoCo to
+            move, the implicit step then integrates it itself and skips `mjx.step` (half of a
+            step's compiled program for the push of `dano.sysid.experiments.push_scene`).
     """
 
     name: str
@@ -113,9 +118,11 @@ class Primitive:
     mass: Number = 1.0
     vel: Vec3 = (0.0, 0.0, 0.0)
     angvel: Vec3 = (0.0, 0.0, 0.0)
+    collide: bool = True
 
     def __post_init__(self):
         V.text(self.name, "primitive name", SceneError)
+        V.boolean(self.collide, f"primitive {self.name!r}: collide", SceneError)
         where = f"primitive {self.name!r}"
         V.choice(self.kind, f"{where}: type", SceneError, SIZES)
         V.choice(self.mode, f"{where}: mode", SceneError, ("static", "free", "mocap", "actuated"))
@@ -420,6 +427,10 @@ class World(eqx.Module):
     integrator: str = eqx.field(static=True, default="implicit")
     fallback_slot: int = eqx.field(static=True, default=-1)
     """`mjx.Data.userdata` slot counting the steps whose active sets overflowed (-1: none)."""
+    mujoco_moves: bool = eqx.field(static=True, default=True)
+    """Whether `mjx.step` moves anything the implicit step does not integrate itself: False where
+    MuJoCo holds only DANOs (free joints, no geoms), static or mocap geometry and actuated
+    primitives that do not collide (`Primitive.collide`), whose slides the step integrates."""
     contact: bool = eqx.field(static=True, default=True)
     """False: no DANO contact pair at all (`pairs` is empty; `dano.sim.run.profile` times the engine
     alone with it)."""
@@ -528,7 +539,9 @@ def _add_primitive(spec: mujoco.MjSpec, p: Primitive) -> None:
             b.add_joint(name=f"{p.name}_slide{axis}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=local.tolist())
             spec.add_actuator(name=f"{p.name}_force{axis}", target=f"{p.name}_slide{axis}",
                               trntype=mujoco.mjtTrn.mjTRN_JOINT).set_to_motor()  # fmt: skip
-    b.add_geom(type=_GEOM[p.kind], size=_mj_size(p), mass=p.mass if p.mode in ("free", "actuated") else 0.0)
+    geom = b.add_geom(type=_GEOM[p.kind], size=_mj_size(p), mass=p.mass if p.mode in ("free", "actuated") else 0.0)
+    if not p.collide:
+        geom.contype = geom.conaffinity = 0
 
 
 def _add_visuals(spec: mujoco.MjSpec) -> None:
@@ -552,6 +565,16 @@ def _budget(scene: Scene, body: DanoBody) -> int:
     if k is None:
         k = active.budget(np.asarray(body.dano.body_points).T, np.asarray(body.dano.normals).T)
     return min(int(k), n)
+
+
+def _mujoco_moves(scene: Scene, model: mujoco.MjModel) -> bool:
+    """`World.mujoco_moves`: anything but the DANOs' free joints and non-colliding actuated
+    primitives' slides and motors (a robot, a free primitive, a colliding one, a constraint)."""
+    held = [p for p in scene.primitives if p.mode == "actuated" and not p.collide]
+    others = any(p.mode == "free" or (p.mode == "actuated" and p.collide) for p in scene.primitives)
+    extra_dof = model.nv - 6 * len(scene.bodies) - 3 * len(held)
+    extra_act = model.nu - 3 * len(held)
+    return scene.robot is not None or others or extra_dof > 0 or extra_act > 0 or model.neq > 0 or model.ntendon > 0
 
 
 def compile_scene(scene: Scene, check_start: bool = False):
@@ -657,6 +680,7 @@ def compile_scene(scene: Scene, check_start: bool = False):
         force_mode=scene.force_mode,
         integrator=scene.integrator,
         fallback_slot=model.nuserdata - 1,
+        mujoco_moves=_mujoco_moves(scene, model),
     )
     overrides = _pair_overrides(scene, world)
     if check_start:
@@ -868,7 +892,7 @@ _SCHEMA = {
     "body": {"name": _name, "dano": _name, "mass": _positive, **_POSE},
     "primitive": {
         "name": _name, "type": _choice(SIZES), "size": _vec(), "mode": _choice(("static", "free", "mocap", "actuated")),
-        "mass": _positive, **_POSE,
+        "mass": _positive, "collide": lambda v, n: V.boolean(v, n, SceneError), **_POSE,
     },
     "contact": {f.name: _num() for f in dataclasses.fields(ContactParams)},
 }  # fmt: skip

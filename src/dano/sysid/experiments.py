@@ -69,11 +69,13 @@ def push_scene(
 ) -> Scene:
     """A DANO at rest on the table and a sphere end effector (actuated along x, y, z, weight
     compensated, known `mass`) at its centre of mass's height, 2 cm clear of it on the side away
-    from the unit xy `direction` it would push in (default: behind it along -x)."""
+    from the unit xy `direction` it would push in (default: behind it along -x). The pusher does not
+    collide with the table in MuJoCo (`Primitive.collide`): it pushes horizontally, weight
+    compensated, so it never meets it, and the implicit step then integrates it without `mjx.step`."""
     z = resting_height(dano)
     reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
     x, y = (-(reach + radius + 0.02) * np.asarray(direction, dtype=float)).tolist()
-    pusher = Primitive(PUSHER, "sphere", (radius,), pos=(x, y, z), mode="actuated", mass=mass)
+    pusher = Primitive(PUSHER, "sphere", (radius,), pos=(x, y, z), mode="actuated", mass=mass, collide=False)
     return Scene(
         bodies=(DanoBody("object", dano, pos=(0.0, 0.0, z)),), primitives=(pusher,),
         contact=ContactParams(sliding_friction=friction),

@@ -290,7 +290,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
 
 
 def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss) -> np.ndarray:
-    """The guess whose open-loop rollout ends nearest the goal (all rolled out at once).
+    """The guess whose open-loop rollout ends nearest the goal (rolled out one after another).
 
     iLQR needs a start in contact: from zero controls the pusher never touches the object and the
     goal has no gradient in the controls."""
