@@ -76,3 +76,11 @@ def test_the_opengl_backend_is_chosen_per_platform(monkeypatch, env, system, exp
         monkeypatch.setenv(name, value)
     monkeypatch.setattr("platform.system", lambda: system)
     assert headless_backends() == expected
+
+
+def test_the_package_is_marked_typed():
+    """PEP 561: `py.typed` ships with the package (listed in pyproject's package-data), so type
+    checkers read dano's annotations."""
+    from importlib.resources import files
+
+    assert (files("dano") / "py.typed").is_file()
