@@ -570,11 +570,9 @@ def _budget(scene: Scene, body: DanoBody) -> int:
 def _mujoco_moves(scene: Scene, model: mujoco.MjModel) -> bool:
     """`World.mujoco_moves`: anything but the DANOs' free joints and non-colliding actuated
     primitives' slides and motors (a robot, a free primitive, a colliding one, a constraint)."""
-    held = [p for p in scene.primitives if p.mode == "actuated" and not p.collide]
-    others = any(p.mode == "free" or (p.mode == "actuated" and p.collide) for p in scene.primitives)
-    extra_dof = model.nv - 6 * len(scene.bodies) - 3 * len(held)
-    extra_act = model.nu - 3 * len(held)
-    return scene.robot is not None or others or extra_dof > 0 or extra_act > 0 or model.neq > 0 or model.ntendon > 0
+    held = sum(p.mode == "actuated" and not p.collide for p in scene.primitives)
+    extra_dof = model.nv - 6 * len(scene.bodies) - 3 * held  # a robot's, a free or colliding primitive's
+    return extra_dof > 0 or model.nu > 3 * held or model.neq > 0 or model.ntendon > 0
 
 
 def compile_scene(scene: Scene, check_start: bool = False):

@@ -26,7 +26,7 @@ import numpy as np
 from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Scene, panda
 from dano.sim.step import mjx_kinematics, scaled_model, step
-from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, solve
+from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, compiled, solve
 from dano.types import DANO
 
 PANDA_HOME = (0.0, 0.614, 0.0, -2.073, 0.0, 2.686, 0.785, 0.02, 0.02)
@@ -38,9 +38,10 @@ PANDA_TORQUE = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 ROBOT_STEP = {"sphere": ("implicit", 8e-3), "panda": ("explicit", 5e-4)}
 """Each robot's default simulator step for the push: (integrator, step length in s). The sphere
 is solved jointly with the DANO by the implicit step, whose derivatives at ten 8 ms steps per
-0.08 s frame cost about a seventh of the explicit step's 160 substeps of 0.5 ms (README,
-`bench/trajopt.py`). The Panda keeps the explicit step: its links are driven by servos and their
-reactions reach MuJoCo explicitly, which longer steps would not keep stable."""
+0.08 s frame cost about a seventh of the explicit step's 160 substeps of 0.5 ms (a frame's
+Jacobian 51 vs 376 ms, measured beside another job when the default changed). The Panda keeps
+the explicit step: its links are driven by servos and their reactions reach MuJoCo explicitly,
+which longer steps would not keep stable."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -157,14 +158,13 @@ def _settled(sim: Simulation, horizon: int, hold: jax.Array) -> Simulation:
     for _ in range(int(np.ceil(SETTLE_S / (horizon * scene.timestep) - 1e-9))):
         traj = dataclasses.replace(sim, data=d).run(horizon, ctrl=ctrl)
         d = d.replace(qpos=traj.qpos[-1], qvel=traj.qvel[-1])
-    qpos, qvel = np.asarray(sim.data.qpos).copy(), np.asarray(sim.data.qvel).copy()
-    rest = np.asarray(d.qpos)
+    qpos, rest = np.asarray(sim.data.qpos).copy(), np.asarray(d.qpos)
     bodies = []
     for b, a in zip(scene.bodies, world.dano_qpos, strict=True):  # the DANOs moved, at rest; the rest as placed
         qpos[a : a + 7] = rest[a : a + 7]
         bodies.append(dataclasses.replace(b, pos=tuple(float(v) for v in rest[a : a + 3]),
                                           quat=tuple(float(v) for v in rest[a + 3 : a + 7])))  # fmt: skip
-    data = sim.data.replace(qpos=jnp.asarray(qpos), qvel=jnp.asarray(qvel))
+    data = sim.data.replace(qpos=jnp.asarray(qpos))  # velocities as placed (at rest)
     return dataclasses.replace(sim, scene=dataclasses.replace(scene, bodies=tuple(bodies)), data=data)
 
 
@@ -294,8 +294,6 @@ def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np
 
     iLQR needs a start in contact: from zero controls the pusher never touches the object and the
     goal has no gradient in the controls."""
-    from dano.trajopt.ilqr import compiled
-
     start = jnp.asarray(x0)
     fn = compiled(problem, start.shape[0], guesses[0].shape[1])  # the solver's own rollout, compiled once
     # one after another: on a CPU a vmapped rollout runs no faster and compiles its own program
