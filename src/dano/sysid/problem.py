@@ -15,6 +15,7 @@ L (m/rad) turns an angle into a length: the body's radius of gyration by default
 error weighs like the displacement it causes at the body's typical radius.
 """
 
+import abc
 import dataclasses
 import warnings
 from collections.abc import Mapping, Sequence
@@ -23,7 +24,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, PyTree
 
 from dano._mjx import mjx
 from dano.contact.wrench import ContactParams
@@ -139,6 +140,28 @@ class Windows(eqx.Module):
     """1 where the frame exists, 0 in the padding of a short last window."""
     basis: Float[Array, "n S s"]
     """Maps the s fitted initial-state unknowns to the S corrections of qpos/qvel (see `start_state`)."""
+    observed: PyTree | None = None
+    """What an `AbstractObservation` compares each window with (a pytree, leading axis n), or None."""
+
+
+class AbstractObservation(eqx.Module):
+    """What simulated states are compared with when it is not poses: e.g. object masks
+    (`dano.vision.pixels.PixelObservation`). A problem with an observation fits its residuals
+    instead of the pose residuals; the windows' `observed` holds its per-window data."""
+
+    @abc.abstractmethod
+    def residuals(self, qpos: Float[Array, "w nq"], observed) -> Float[Array, "w k"]:
+        """Residuals (w, k) of a window's simulated qpos at its frames 1..W against `observed`
+        (the window's slice of `Windows.observed`)."""
+
+    @property
+    @abc.abstractmethod
+    def per_frame(self) -> int:
+        """k: residuals per frame."""
+
+    @abc.abstractmethod
+    def rms(self, r: np.ndarray, windows: Windows) -> float:
+        """The root mean square error, in the observation's own units, of residuals (n, W, k)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -189,6 +212,8 @@ class Problem:
     """What was changed between the data and the simulation, by kind (reported in the result):
     `timestep` (the scene's step replaced by the frame interval), `settle` (bodies put on the ground
     at a window's start), and what the caller adds (`scale`, `gravity`, ...)."""
+    observation: AbstractObservation | None = None
+    """Compared with instead of the observed poses (masks, ...), or None: the poses' residuals."""
 
     @property
     def n_windows(self) -> int:
@@ -216,6 +241,8 @@ class Problem:
     @property
     def n_residuals(self) -> int:
         """Residuals that carry data (rotation of sliding bodies and padding excluded)."""
+        if self.observation is not None:
+            return int(np.sum(np.asarray(self.windows.mask))) * self.observation.per_frame
         per_frame = sum(6 if o.kind == "free" else 3 for o in self.observed)
         return int(np.sum(np.asarray(self.windows.mask))) * per_frame
 
@@ -569,12 +596,17 @@ def start_state(problem: Problem, w: Windows, delta: Float[Array, " s"]) -> tupl
 
 def window_residuals(
     problem: Problem, theta: Float[Array, " p"], delta: Float[Array, " s"], w: Windows
-) -> Float[Array, "w b 6"]:
-    """Residuals of one window (`w` unbatched): per frame and observed body, position then rotation.
+) -> Float[Array, "w b 6"] | Float[Array, "w k"]:
+    """Residuals of one window (`w` unbatched): per frame and observed body, position then rotation;
+    or per frame the problem's `observation` residuals (w, k).
 
-    Padding frames give zeros (a `where`, so a blow-up there cannot leak NaN into the loss).
+    Padding frames (and frames without an observation) give zeros (a `where`, so a blow-up there
+    cannot leak NaN into the loss).
     """
     q = simulate_window(problem, theta, delta, w, checkpoint=False)[1:]
+    if problem.observation is not None:
+        r = problem.observation.residuals(q, w.observed)
+        return jnp.where(w.mask[:, None] > 0, r, 0.0)
     out = []
     for b, o in enumerate(problem.observed):
         if o.kind == "free":
@@ -590,7 +622,7 @@ def window_residuals(
 
 def residuals(
     problem: Problem, theta: Float[Array, " p"], delta: Float[Array, "n s"], windows: Windows | None = None
-) -> Float[Array, "n w b 6"]:
+) -> Float[Array, "n w b 6"] | Float[Array, "n w k"]:
     """Residuals of all windows (vmapped; `problem.windows` unless given): the objective is ½ Σ r²."""
     windows = problem.windows if windows is None else windows
     return over_windows(lambda dl, w: window_residuals(problem, theta, dl, w), delta, windows)

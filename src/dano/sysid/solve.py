@@ -51,7 +51,8 @@ class Identification:
         message: which test stopped it.
         theta: (p,) the estimate in `problem.names` order.
         delta: (n, s) the fitted initial-state corrections per window (empty unless fitted).
-        rms_position: root mean square position error at the estimate, m.
+        rms_position: root mean square position error at the estimate, m (None when fitted to an
+            observation other than poses).
         rms_rotation: root mean square rotation error at the estimate, rad (None when the rotation
             residuals were weighted out, `rotation_weight=0`).
         intervals: (low, high) per parameter at `level`: the profile-likelihood interval (refit with
@@ -64,6 +65,7 @@ class Identification:
         adjustments: every change between the data as given and the simulation, by kind
             (`Problem.adjustments`, and `init` clipped into the bounds).
         loss_function: "l2", "huber" or "cauchy" (`robust`).
+        rms_observation: the observation's own RMS error when fitted to one (masks: opacity), or None.
     """
 
     params: dict[str, float]
@@ -75,7 +77,7 @@ class Identification:
     message: str
     theta: np.ndarray
     delta: np.ndarray
-    rms_position: float
+    rms_position: float | None
     rms_rotation: float | None
     intervals: dict[str, tuple[float, float]]
     interval: str = "gauss-newton"
@@ -83,6 +85,7 @@ class Identification:
     flags: tuple[str, ...] = ()
     adjustments: dict = dataclasses.field(default_factory=dict)
     loss_function: str = "l2"
+    rms_observation: float | None = None
 
     def summary(self) -> dict:
         """The `dano sysid --json` object (`dano.results`), with the intervals' method and level, the
@@ -94,7 +97,7 @@ class Identification:
             converged=self.converged, message=self.message, seconds=self.seconds, rms_position=self.rms_position,
             rms_rotation=self.rms_rotation, adjustments=self.adjustments,
             interval={"method": self.interval, "level": self.level}, loss=self.loss, flags=list(self.flags),
-            loss_function=self.loss_function,
+            loss_function=self.loss_function, rms_observation=self.rms_observation,
         )  # fmt: skip
 
 
@@ -143,7 +146,7 @@ def _compiled(problem: Problem, jac: str, loss_name: str = "l2"):
         def one(dl, w):
             def f(th, d_):
                 plain = window_residuals(problem, th, d_, w).reshape(-1)
-                r = robust(plain.reshape(-1, 6), loss_name).reshape(-1)
+                r = plain if loss_name == "l2" else robust(plain.reshape(-1, 6), loss_name).reshape(-1)
                 return r, (plain, r)
 
             if jac == "fwd" and theta.shape[0] + dl.shape[0] == 1:  # one tangent: a jvp, nothing batched
@@ -283,6 +286,8 @@ def identify(
     if not 0.0 < level < 1.0:
         raise SysidError(f"the confidence level must be between 0 and 1, got {level}")
     robust(jnp.zeros((1, 6)), loss)  # a bad name is refused before any work
+    if loss != "l2" and problem.observation is not None:
+        raise SysidError(f"the {loss!r} loss is for pose residuals; a problem fitted to masks uses 'l2'")
     names = problem.names
     labels = names if labels is None else tuple(labels)
     p, n, s = len(names), problem.n_windows, problem.n_state
@@ -525,6 +530,9 @@ def _stderr(H: np.ndarray, loss: float, problem: Problem, p: int) -> list[float]
 
 
 def _rms(problem: Problem, r: np.ndarray) -> dict[str, float | None]:
+    if problem.observation is not None:  # no poses to compare with: the observation's own RMS
+        rms = problem.observation.rms(r.reshape(problem.n_windows, problem.n_frames, -1), problem.windows)
+        return {"rms_position": None, "rms_rotation": None, "rms_observation": rms}
     r = r.reshape(problem.windows.target_pos.shape[:3] + (6,)) * problem.sigma
     mask = np.asarray(problem.windows.mask) > 0
     free = np.array([o.kind == "free" and o.weight > 0 for o in problem.observed])

@@ -1,0 +1,473 @@
+"""Torques to pixels: identification from object masks through simulation and rendering.
+
+The paper tracks poses frame by frame with a mask loss and then identifies parameters from the
+poses (Sec. V, its limitations iii-iv). Here the two are one problem: the parameters θ and the
+initial state are simulated forward (`dano.sysid`'s rollout), the DANO's silhouette is rendered at
+every simulated pose with the tracker's renderer (`dano.vision.track.render_silhouette`, same
+camera model), and the residuals per frame are
+
+    (T(p_k) − M_k) / σ                             one per pixel of the frame's window
+    √(R · w) (B(T(p_k)) − B(M_k)) / σ              the barycentres (image-size units), 2 per frame
+
+with T the rendered opacity, M the mask box-averaged to the window's pixels, R the window's pixel
+count, w the barycentre weight and σ the opacity noise: ½Σr² is the tracker's loss summed over
+frames (in units of σ²). The physics ties every frame to every other, so the orientation a single
+mask cannot resolve (a box seen from above, turned by 180°) and a frame whose mask is wrong cost
+the fit little. The same projected Levenberg-Marquardt solver, bounds, intervals and JSON as
+pose-based identification (`dano.sysid.identify`) run on it; the Jacobian is forward mode (one
+tangent per unknown), so memory does not grow with the pixels' count times the frames'.
+
+Each frame is rendered in a window around its mask (`dano.vision.track.windows`, placed on the
+mask's largest connected part so a few false pixels far away do not move it), box-averaged so its
+longest side is at most `max_size` pixels. A frame whose mask is empty (a dropped or failed
+segmentation) carries no residuals and is reported in the problem's adjustments.
+
+The initial state comes from the poses of a few first frames (`dano.vision.track` run on them, or
+a pose track given) and is then fitted with θ (`initial="state"`): the first frames' poses only
+need to be good enough to start from.
+
+The standard errors and intervals treat the pixels' errors as independent; neighbouring pixels of
+a silhouette's edge are not, so they are optimistic (narrower than the truth).
+"""
+
+import dataclasses
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+from tqdm.auto import tqdm
+
+from dano.errors import DanoError
+from dano.fields import AbstractField
+from dano.fields.base import Bounds, CallableField, as_bounds
+from dano.fields.grid import GridField
+from dano.math import quat_to_mat, smootherstep
+from dano.sim.scene import DanoBody, Scene
+from dano.sysid.data import Track
+from dano.sysid.problem import AbstractObservation, Problem, Recording, SysidError, Windows, make_problem
+from dano.sysid.solve import Identification, identify
+from dano.vision.data import Camera, camera_rays
+from dano.vision.track import Silhouette, TrackConfig, downsample, render_silhouette, track, windows
+
+
+class MaskError(DanoError):
+    """Masks that cannot be fitted: another size than the camera's, too few frames, none visible."""
+
+
+class MaskTargets(eqx.Module):
+    """A window's per-frame view of the masks: the rays of each frame's pixel window and the mask
+    there (frames 1..W of the window; a leading window axis in `Windows.observed`)."""
+
+    origins: Float[Array, "*n w r k 3"]
+    """The k = supersample² rays through each pixel (world)."""
+    directions: Float[Array, "*n w r k 3"]
+    uv: Float[Array, "*n w r 2"]
+    """Pixel centres in image-size units (0..1), for the barycentres."""
+    mask: Float[Array, "*n w r"]
+
+
+class PixelObservation(AbstractObservation):
+    """Object masks as the observation of one DANO: residuals of its rendered silhouette (module
+    docstring).
+
+    Attributes:
+        field: the object's density in its own frame (the DANO's frame), read as occupancy φ / peak.
+        peak: the field's fully-inside density.
+        centre, radius: the field's bounding sphere in its frame (m): the rays' sampled interval.
+        n_samples: samples per ray through the sphere.
+        qpos: where the observed DANO's free joint starts in qpos.
+        com: (3,) its centre of mass in its frame (qpos holds the centre of mass's position).
+        sigma: opacity noise: residuals are in units of it.
+        barycentre_weight: w, as the tracker's.
+        n_rays: R, pixels per frame's window.
+    """
+
+    field: AbstractField
+    peak: float = eqx.field(static=True)
+    centre: Float[Array, " 3"]
+    radius: float = eqx.field(static=True)
+    n_samples: int = eqx.field(static=True)
+    qpos: int = eqx.field(static=True)
+    com: Float[Array, " 3"]
+    sigma: float = eqx.field(static=True)
+    barycentre_weight: float = eqx.field(static=True)
+    n_rays: int = eqx.field(static=True)
+
+    @property
+    def per_frame(self) -> int:
+        return self.n_rays + 2
+
+    def silhouettes(self, qpos: Float[Array, "w nq"], observed: MaskTargets) -> Float[Array, "w r"]:
+        """The rendered opacity of the DANO at each frame's pose, over the frame's window."""
+        pos, quat = qpos[:, self.qpos : self.qpos + 3], qpos[:, self.qpos + 3 : self.qpos + 7]
+        origin = pos - jnp.einsum("wij,j->wi", quat_to_mat(quat), self.com)  # the field frame's origin
+
+        def frame(p, q, origins, directions, uv):  # each pixel's opacity: the mean over its rays
+            r, k = directions.shape[:2]
+            s = Silhouette(
+                origins.reshape(r * k, 3), directions.reshape(r * k, 3), jnp.repeat(uv, k, axis=0), self.field, self.peak, self.centre,
+                self.radius, self.n_samples,
+            )  # fmt: skip
+            return jnp.mean(render_silhouette(s, p, q).reshape(r, k), axis=1)
+
+        return jax.vmap(jax.checkpoint(frame))(origin, quat, observed.origins, observed.directions, observed.uv)
+
+    def residuals(self, qpos: Float[Array, "w nq"], observed: MaskTargets) -> Float[Array, "w k"]:
+        opacity = self.silhouettes(qpos, observed)
+        shift = jax.vmap(_barycentre)(opacity, observed.uv) - jax.vmap(_barycentre)(observed.mask, observed.uv)
+        scale = float(np.sqrt(self.n_rays * self.barycentre_weight))
+        return jnp.concatenate([opacity - observed.mask, scale * shift], axis=1) / self.sigma
+
+    def rms(self, r: np.ndarray, windows: Windows) -> float:
+        """Root mean square opacity error over the frames that have a mask."""
+        frames = np.asarray(windows.mask) > 0
+        return float(np.sqrt(np.mean((r[..., : self.n_rays][frames] * self.sigma) ** 2)))
+
+
+def _barycentre(image: Float[Array, " r"], uv: Float[Array, "r 2"]) -> Float[Array, " 2"]:
+    return jnp.sum(image[:, None] * uv, axis=0) / (jnp.sum(image) + 1e-6)
+
+
+@dataclasses.dataclass(frozen=True)
+class MaskConfig:
+    """How masks are compared with simulated silhouettes (`mask_problem`).
+
+    Attributes:
+        sigma: opacity noise (residual unit; the estimate does not depend on it).
+        barycentre_weight: weight of the barycentre residuals (the tracker's).
+        max_size: each frame's window is box-averaged until its longest side is at most this (pixels).
+        n_samples: samples per ray through the object's bounding sphere.
+        margin: the windows grow by this times the largest mask's longest side on every side.
+        supersample: each pixel's opacity is the mean of supersample² rays through it, as the masks
+            box-averaged to the window's pixels are the object's share of each pixel. With one ray a
+            hard edge changes a pixel only when it crosses the pixel's centre, and the loss is a
+            staircase in the pose, flat between steps.
+        edge: the silhouette's edge is a ramp about this many pixels wide: the density is rendered
+            as peak · S(−d / w) with d the signed distance to its half level and w this width at the
+            object's distance (`soft_edged`). The ramp keeps the surface where it is (blurring the
+            density would pull it in where two faces meet), and makes the loss smooth at the scale
+            of a pixel: measured on a box sliding at 1.6 m/s, a 0.75 mm edge (a third of a pixel)
+            took 4 horizons of ~50 Levenberg-Marquardt iterations each, a 3 mm one 20-30.
+        first_frames: the fit is continued over growing horizons: the first this many frames, then
+            twice as many, ..., then all (`identify_masks`); a horizon over which the simulation drifts
+            out of the masks gives no gradient.
+        init_frames: frames tracked for the initial state when no start track is given.
+        pose_sigma: how far the first frames' poses may be off, m: the initial pose is fitted within
+            5 of it (and a body this near the ground, 3 of it, is started on the ground).
+    """
+
+    sigma: float = 0.1
+    barycentre_weight: float = 1.0
+    max_size: int = 64
+    n_samples: int = 48
+    margin: float = 0.3
+    supersample: int = 2
+    edge: float = 1.0
+    first_frames: int = 8
+    init_frames: int = 6
+    pose_sigma: float = 2e-3
+
+
+def dano_field(body: DanoBody) -> tuple[AbstractField, float]:
+    """The DANO's density field (its baked grid) and peak, for rendering its silhouette.
+
+    Raises:
+        MaskError: the DANO file carries no grid (build it with `dano build`, or give the field).
+    """
+    dano = body.dano
+    if dano.grid is None or dano.grid_bounds is None or dano.peak is None:
+        raise MaskError(
+            f"DANO {body.name!r} has no baked density grid to render its silhouette: rebuild it with `dano build` "
+            "or give its field"
+        )
+    return GridField(jnp.asarray(dano.grid), dano.grid_bounds), float(dano.peak)
+
+
+def mask_problem(
+    scene: Scene,
+    masks: np.ndarray,
+    camera: Camera,
+    fps: float,
+    fit: Sequence[str],
+    body: str | None = None,
+    start: Track | None = None,
+    start_pose: tuple[np.ndarray, np.ndarray] | None = None,
+    field: AbstractField | None = None,
+    config: MaskConfig = MaskConfig(),
+    initial: str = "state",
+    progress: bool = True,
+) -> Problem:
+    """Identification of `fit` from the masks of one DANO of `scene` filmed by a fixed `camera`.
+
+    Args:
+        masks: (n, h, w) in [0, 1], 1 on the object, the camera's size; frame k at time k / fps. A frame
+            with an empty mask carries no residuals.
+        body: the observed DANO (default: the scene's only one).
+        start: the body's poses (centre of mass, world) over at least the first 3 frames, for the
+            initial state (e.g. from `dano track`); default: `dano.vision.track` on the first
+            `config.init_frames` masks.
+        start_pose: (position (3,), quat (4,)) of the DANO's own frame in the first frame, where the
+            tracker starts (default: its guess from the first mask, unrotated).
+        field: the density the silhouette is rendered from, in the DANO's frame (default: the grid
+            baked into the DANO).
+        initial: "state" (default: the initial pose and velocity fitted), "velocity" or "none".
+
+    Raises:
+        MaskError: masks of another size than the camera's, fewer than 3 frames, an empty first mask.
+        SysidError: as `make_problem`.
+    """
+    masks = np.asarray(masks, dtype=float)
+    if masks.ndim != 3 or masks.shape[1:] != (camera.height, camera.width):
+        raise MaskError(f"masks are {masks.shape[1:]} pixels but the camera is ({camera.height}, {camera.width})")
+    if len(masks) < 3:
+        raise MaskError(f"need at least 3 frames of masks, got {len(masks)}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise MaskError(f"fps must be positive, got {fps}")
+    if not np.all(np.isfinite(masks)) or masks.min() < 0 or masks.max() > 1:
+        raise MaskError("masks must be finite and in [0, 1]")
+    visible = masks.reshape(len(masks), -1).max(axis=1) > 0.5
+    if not visible[0]:
+        raise MaskError("the first mask is empty: the object must be visible where the fit starts")
+    target = _observed_body(scene, body)
+    own, peak = dano_field(target) if field is None else (field, None)
+    if peak is None:
+        from dano.surface import field_peak
+
+        peak = field_peak(own)
+    com = np.asarray(target.dano.com)
+    if start is None:
+        start = _first_frames(own, camera, masks, visible, fps, com, start_pose, config, progress)
+    if start.n_frames < 3:
+        raise MaskError(f"the start track has {start.n_frames} frames; the initial velocity needs at least 3")
+    recording = Recording({target.name: _padded(start, len(masks), 1.0 / fps)})
+    problem = make_problem(
+        scene, [recording], fit, initial=initial, sigma=config.pose_sigma, rotation_weight=0.0,
+    )  # fmt: skip
+    observation, targets = _observation(problem, target.name, own, peak, com, camera, masks, visible, config)
+    mask = problem.windows.mask * jnp.asarray(visible[1:], dtype=problem.windows.mask.dtype)[None, :]
+    windows = dataclasses.replace(problem.windows, observed=targets, mask=mask)
+    adjustments = dict(problem.adjustments)
+    if not visible.all():
+        adjustments["frames_without_mask"] = [int(k) for k in np.flatnonzero(~visible)]
+    return dataclasses.replace(problem, windows=windows, observation=observation, adjustments=adjustments)
+
+
+def _observed_body(scene: Scene, body: str | None) -> DanoBody:
+    if body is None:
+        if len(scene.bodies) != 1:
+            raise SysidError(f"the scene has {len(scene.bodies)} DANOs: name the one the masks show")
+        return scene.bodies[0]
+    for b in scene.bodies:
+        if b.name == body:
+            return b
+    raise SysidError(f"the masks show DANO {body!r}, which the scene does not have ({[b.name for b in scene.bodies]})")
+
+
+def _first_frames(field, camera, masks, visible, fps, com, start_pose, config: MaskConfig, progress) -> Track:
+    """The centre of mass's track over the first visible frames, by the per-frame tracker."""
+    k = 0
+    while k < min(config.init_frames, len(masks)) and visible[k]:
+        k += 1
+    if k < 3:
+        raise MaskError(f"the first 3 masks must show the object to start from (frame {k} is empty)")
+    result = track(field, camera, masks[:k], TrackConfig(), init=start_pose, progress=progress)
+    rot = np.asarray(quat_to_mat(jnp.asarray(result.quats)))
+    pos = result.positions + np.einsum("tij,j->ti", rot, com)
+    return Track(t=np.arange(k) / fps, pos=pos, quat=result.quats, source="masks (first frames tracked)")
+
+
+def _padded(start: Track, n: int, dt: float) -> Track:
+    """The start track extended to n frames by its last pose (poses after the start are not used:
+    the masks are the data), on the masks' clock."""
+    if abs(start.dt - dt) > 1e-6 * dt:
+        raise MaskError(f"the start track's frame rate {1 / start.dt:.6g} fps is not the masks' {1 / dt:.6g}")
+    k = min(start.n_frames, n)
+    index = np.minimum(np.arange(n), k - 1)
+    return Track(t=np.arange(n) * dt, pos=start.pos[index], quat=start.quat[index], source=start.source)
+
+
+def _observation(problem: Problem, name, field, peak, com, camera, masks, visible, config: MaskConfig):
+    """The `PixelObservation` and each window's `MaskTargets` (one window: frames 1..n-1)."""
+    if problem.n_windows != 1:  # make_problem was asked for one window
+        raise SysidError("identification from masks simulates the video as one window")
+    held = _largest_parts(masks, visible)
+    (height, width), _ = windows(held, config.margin)
+    factor = max(1, -(-max(height, width) // config.max_size))
+    small, cam = downsample(masks, camera, factor)
+    held_small, _ = downsample(held, camera, factor)
+    size, corners = windows(held_small, config.margin)
+    ss = int(config.supersample)
+    if ss < 1:
+        raise MaskError(f"supersample must be at least 1, got {ss}")
+    origins, directions = (a.reshape(cam.height, ss, cam.width, ss, 3) for a in camera_rays(_finer(cam, ss)))
+    origins, directions = (a.transpose(0, 2, 1, 3, 4).reshape(cam.height * cam.width, ss * ss, 3)
+                           for a in (origins, directions))  # fmt: skip
+    uv = np.stack(np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5), -1).reshape(-1, 2)
+    uv = uv / [cam.width, cam.height]
+    rows = corners[:, :1, None] + np.arange(size[0])[None, :, None]
+    cols = corners[:, 1:, None] + np.arange(size[1])[None, None, :]
+    index = (rows * cam.width + cols).reshape(len(corners), -1)[1:]  # frames 1..n-1, (n - 1, r)
+    flat = small.reshape(len(small), -1)[1:]
+    targets = MaskTargets(
+        jnp.asarray(origins[index])[None], jnp.asarray(directions[index])[None], jnp.asarray(uv[index])[None],
+        jnp.asarray(np.take_along_axis(flat, index, axis=1))[None],
+    )  # fmt: skip
+    observed = next(o for o in problem.observed if o.name == name)
+    depth = float(np.linalg.norm(np.asarray(problem.windows.qpos[0, observed.qpos : observed.qpos + 3]) - cam.position))
+    field = soft_edged(field, peak, config.edge * depth / min(cam.fx, cam.fy))
+    peak = 1.0
+    lo, hi = (np.asarray(b, dtype=float) for b in field.bounds)
+    observation = PixelObservation(
+        field=field, peak=float(peak), centre=jnp.asarray(0.5 * (lo + hi)), radius=0.5 * float(np.linalg.norm(hi - lo)),
+        n_samples=config.n_samples, qpos=observed.qpos, com=jnp.asarray(com), sigma=float(config.sigma),
+        barycentre_weight=float(config.barycentre_weight), n_rays=int(index.shape[1]),
+    )  # fmt: skip
+    return observation, targets
+
+
+def _finer(camera: Camera, k: int) -> Camera:
+    """The camera with k × k pixels for each of its own (row-major rays through their centres)."""
+    return dataclasses.replace(
+        camera, width=camera.width * k, height=camera.height * k, fx=camera.fx * k, fy=camera.fy * k,
+        cx=camera.cx * k, cy=camera.cy * k,
+    )  # fmt: skip
+
+
+class SoftEdged(AbstractField):
+    """Occupancy S(−d(x) / width) of an analytic field's signed distance d (its half level exact)."""
+
+    field: AbstractField
+    width: float = eqx.field(static=True)
+    bounds: Bounds = eqx.field(static=True)
+
+    def __call__(self, x: Float[Array, "n 3"]) -> Float[Array, " n"]:
+        return smootherstep(-self.field.signed_distance(x) / self.width)  # pyright: ignore[reportAttributeAccessIssue]
+
+
+def soft_edged(field: AbstractField, peak: float, width: float, max_nodes: int = 160) -> AbstractField:
+    """Occupancy (0..1) whose half level is `field`'s half-peak level and which ramps over ±`width`
+    (m) across it: S(−d / width) with d the signed distance to that level (`smootherstep`).
+
+    An analytic field gives d exactly. Any other is baked on a grid of spacing ≤ width / 3 (at most
+    `max_nodes` along its longest side), and d is the Euclidean distance transform of its inside
+    (≥ half peak) and outside, each side measured to the midpoint between neighbouring nodes of
+    opposite sides (exact to half a spacing, then smoothed over the width by the ramp).
+    """
+    from scipy.ndimage import distance_transform_edt
+
+    from dano.fields.grid import as_grid
+
+    grow = 1.5 * width
+    lo, hi = (np.asarray(b, dtype=float) for b in field.bounds)
+    bounds = as_bounds(np.stack([lo - grow, hi + grow]))
+    if hasattr(field, "signed_distance"):
+        return SoftEdged(field, float(width), bounds)
+    extent = float(np.max(hi - lo)) + 2 * grow
+    spacing = max(width / 3.0, extent / (max_nodes - 1))
+    shape = tuple(int(np.ceil((b - a) / spacing)) + 1 for a, b in zip(bounds[0], bounds[1], strict=True))
+    upper = np.asarray(bounds[0]) + spacing * (np.asarray(shape) - 1)
+    grid = as_grid(CallableField(field, bounds), shape)  # pyright: ignore[reportArgumentType]
+    inside = np.asarray(grid.density) >= 0.5 * peak
+    d = distance_transform_edt(inside, sampling=spacing) - distance_transform_edt(~inside, sampling=spacing)
+    d = -np.asarray(d) - np.where(inside, -0.5 * spacing, 0.5 * spacing)  # negative inside, to the midpoints
+    occupancy = np.asarray(smootherstep(jnp.asarray(-d / width)))
+    return GridField(jnp.asarray(occupancy), (tuple(bounds[0]), tuple(upper)))
+
+
+def _largest_parts(masks: np.ndarray, visible: np.ndarray) -> np.ndarray:
+    """Each mask's largest connected part (where the windows go); an empty frame takes the last
+    visible frame's."""
+    from scipy import ndimage
+
+    out = np.zeros_like(masks)
+    last = None
+    for k, m in enumerate(masks):
+        if visible[k]:
+            labels, n = ndimage.label(m > 0.5)
+            if n > 1:
+                sizes = ndimage.sum_labels(np.ones_like(m), labels, index=np.arange(1, n + 1))
+                last = (labels == 1 + int(np.argmax(sizes))).astype(float)
+            else:
+                last = (m > 0.5).astype(float)
+        assert last is not None  # the first frame is visible
+        out[k] = last
+    return out
+
+
+def simulated_silhouettes(problem: Problem, theta, delta) -> tuple[np.ndarray, np.ndarray]:
+    """(rendered opacity, mask) per frame 1..n-1 over the frames' windows, (n - 1, r) each, at (θ, δ)."""
+    from dano.sysid.problem import simulate_windows
+
+    observation = problem.observation
+    if not isinstance(observation, PixelObservation):
+        raise SysidError("the problem is not fitted to masks")
+    q = simulate_windows(problem, theta, delta)[0, 1:]
+    targets = jax.tree_util.tree_map(lambda x: x[0], problem.windows.observed)
+    return np.asarray(observation.silhouettes(q, targets)), np.asarray(targets.mask)
+
+
+def identify_masks(
+    problem: Problem,
+    init: dict[str, float] | None = None,
+    bounds: dict[str, tuple[float, float]] | None = None,
+    labels: tuple[str, ...] | None = None,
+    first_frames: int = MaskConfig.first_frames,
+    max_steps: int = 50,
+    interval: str = "gauss-newton",
+    level: float = 0.95,
+    rtol: float = 1e-6,
+    progress: bool = True,
+) -> Identification:
+    """`dano.sysid.identify` on a problem from `mask_problem`, continued over growing horizons.
+
+    The first `first_frames` frames are fitted, then twice as many from that estimate (θ and the
+    initial state), and so on to the whole video; the intervals are computed on the last. Each
+    horizon reuses the problem's compiled functions (only the frames' weights change). A horizon
+    over which the simulation from a poor guess drifts out of the masks would give no gradient:
+    a friction 0.3 too low moves a box sliding for 0.27 s by 10 cm, more than its length.
+
+    Args:
+        rtol: stop a horizon when an accepted step lowers the loss by less than this fraction of
+            it (the pixels' loss is large and not a χ², so the pose fit's absolute `ftol` is no test).
+        (others): as `identify`.
+    """
+    from dano.sysid.problem import start_state
+
+    if not isinstance(problem.observation, PixelObservation):
+        raise SysidError("identify_masks needs a problem fitted to masks (mask_problem)")
+    if first_frames < 2:
+        raise SysidError(f"first_frames must be at least 2, got {first_frames}")
+    full = problem.windows.mask
+    n = int(full.shape[1])
+    horizons = []
+    h = int(first_frames)
+    while h < n:
+        horizons.append(h)
+        h *= 2
+    theta = dict(init or {})
+    current = problem
+    bar = tqdm(total=len(horizons) + 1, desc="horizons", unit="stage", disable=None if progress else True, leave=False)
+    seconds = 0.0
+    for h in horizons:
+        prefix = full * (jnp.arange(n) < h).astype(full.dtype)[None, :]
+        stage = dataclasses.replace(current, windows=dataclasses.replace(current.windows, mask=prefix))
+        result = identify(stage, init=theta, bounds=bounds, max_steps=max_steps, rtol=rtol, progress=False)
+        seconds += result.seconds
+        theta = dict(zip(problem.names, (float(v) for v in result.theta), strict=True))
+        w0 = jax.tree_util.tree_map(lambda x: x[0], current.windows)
+        qpos, qvel = start_state(current, w0, jnp.asarray(result.delta[0]))
+        current = dataclasses.replace(
+            current, windows=dataclasses.replace(current.windows, qpos=qpos[None], qvel=qvel[None])
+        )
+        bar.update()
+    result = identify(
+        current, init=theta, bounds=bounds, labels=labels, max_steps=max_steps, rtol=rtol, interval=interval,
+        level=level, progress=False,
+    )  # fmt: skip
+    bar.update()
+    bar.close()
+    adjustments = {**result.adjustments, "horizons": [*horizons, n]}
+    return dataclasses.replace(result, seconds=result.seconds + seconds, adjustments=adjustments)
