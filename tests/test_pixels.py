@@ -1,5 +1,7 @@
 """Identification from masks (`dano.vision.pixels`): the pixel loss of a simulated trajectory."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,7 +14,7 @@ from dano.sim import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.problem import residuals
 from dano.vision import camera_from_fov, look_at
-from dano.vision.pixels import MaskConfig, MaskError, mask_problem, simulated_silhouettes
+from dano.vision.pixels import MaskConfig, MaskError, MaskTargets, mask_problem, simulated_silhouettes
 
 SIZE = (0.09, 0.06, 0.03)
 FPS = 120.0
@@ -39,8 +41,9 @@ def _problem(mu_data: float, frames: int = 6):
     problem = mask_problem(scene, masks, camera, FPS, ["friction"], start=start, field=BoxField(SIZE), config=config)
     opacity, _ = simulated_silhouettes(problem, jnp.asarray([mu_data]), jnp.zeros((1, problem.n_state)))
     observed = problem.windows.observed
-    windows = problem.windows.__class__(**{**vars(problem.windows), "observed": type(observed)(
-        observed.origins, observed.directions, observed.uv, jnp.asarray(opacity)[None])})  # fmt: skip
+    assert isinstance(observed, MaskTargets)
+    truth = MaskTargets(observed.origins, observed.directions, observed.uv, jnp.asarray(opacity)[None])
+    windows = dataclasses.replace(problem.windows, observed=truth)
     return problem, windows
 
 

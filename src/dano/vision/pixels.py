@@ -107,10 +107,8 @@ class PixelObservation(AbstractObservation):
 
         def frame(p, q, origins, directions, uv):  # each pixel's opacity: the mean over its rays
             r, k = directions.shape[:2]
-            s = Silhouette(
-                origins.reshape(r * k, 3), directions.reshape(r * k, 3), jnp.repeat(uv, k, axis=0), self.field, self.peak, self.centre,
-                self.radius, self.n_samples,
-            )  # fmt: skip
+            rays = (origins.reshape(r * k, 3), directions.reshape(r * k, 3), jnp.repeat(uv, k, axis=0))
+            s = Silhouette(*rays, self.field, self.peak, self.centre, self.radius, self.n_samples)
             return jnp.mean(render_silhouette(s, p, q).reshape(r, k), axis=1)
 
         return jax.vmap(jax.checkpoint(frame))(origin, quat, observed.origins, observed.directions, observed.uv)
@@ -371,7 +369,9 @@ def soft_edged(field: AbstractField, peak: float, width: float, max_nodes: int =
     upper = np.asarray(bounds[0]) + spacing * (np.asarray(shape) - 1)
     grid = as_grid(CallableField(field, bounds), shape)  # pyright: ignore[reportArgumentType]
     inside = np.asarray(grid.density) >= 0.5 * peak
-    d = distance_transform_edt(inside, sampling=spacing) - distance_transform_edt(~inside, sampling=spacing)
+    outside_to = np.asarray(distance_transform_edt(inside, sampling=spacing))
+    inside_to = np.asarray(distance_transform_edt(~inside, sampling=spacing))
+    d = outside_to - inside_to
     d = -np.asarray(d) - np.where(inside, -0.5 * spacing, 0.5 * spacing)  # negative inside, to the midpoints
     occupancy = np.asarray(smootherstep(jnp.asarray(-d / width)))
     return GridField(jnp.asarray(occupancy), (tuple(bounds[0]), tuple(upper)))
@@ -386,7 +386,7 @@ def _largest_parts(masks: np.ndarray, visible: np.ndarray) -> np.ndarray:
     last = None
     for k, m in enumerate(masks):
         if visible[k]:
-            labels, n = ndimage.label(m > 0.5)
+            labels, n = ndimage.label(m > 0.5)  # pyright: ignore[reportGeneralTypeIssues]
             if n > 1:
                 sizes = ndimage.sum_labels(np.ones_like(m), labels, index=np.arange(1, n + 1))
                 last = (labels == 1 + int(np.argmax(sizes))).astype(float)
