@@ -24,7 +24,7 @@ STANDARD_GRAVITY = 9.81
 def extent(scene: Scene, name: str | None = None) -> float:
     """A DANO's longest dimension along its principal axes (`DANO.principal_extents`), in the scene's
     units: what a ruler laid along the object measures, whatever frame its field was built in."""
-    return longest_extent(_body(scene, name).dano)
+    return longest_extent(scene_dano(scene, name).dano)
 
 
 def longest_extent(dano) -> float:
@@ -69,10 +69,11 @@ def warn_implausible_units(scene: Scene, recordings: list[Recording]) -> None:
                 )
 
 
-def _body(scene: Scene, name: str | None):
+def scene_dano(scene: Scene, name: str | None, what: str = "the size refers to"):
+    """The scene's DANO called `name`, or its only one (None); `what` ends the message asking for a name."""
     if name is None:
         if len(scene.bodies) != 1:
-            raise SysidError(f"the scene has {len(scene.bodies)} DANOs: name the one the size refers to")
+            raise SysidError(f"the scene has {len(scene.bodies)} DANOs: name the one {what}")
         return scene.bodies[0]
     for b in scene.bodies:
         if b.name == name:

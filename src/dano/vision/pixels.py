@@ -47,6 +47,7 @@ from dano.fields.grid import GridField
 from dano.math import quat_to_mat, smootherstep
 from dano.sim.scene import DanoBody, Scene
 from dano.sysid.data import Track
+from dano.sysid.frames import scene_dano
 from dano.sysid.problem import AbstractObservation, Problem, Recording, SysidError, Windows, make_problem
 from dano.sysid.solve import Identification, identify
 from dano.vision.data import Camera, camera_rays
@@ -229,7 +230,7 @@ def mask_problem(
     visible = masks.reshape(len(masks), -1).max(axis=1) > 0.5
     if not visible[0]:
         raise MaskError("the first mask is empty: the object must be visible where the fit starts")
-    target = _observed_body(scene, body)
+    target = scene_dano(scene, body, "the masks show")
     own, peak = dano_field(target) if field is None else (field, None)
     if peak is None:
         from dano.surface import field_peak
@@ -251,17 +252,6 @@ def mask_problem(
     if not visible.all():
         adjustments["frames_without_mask"] = [int(k) for k in np.flatnonzero(~visible)]
     return dataclasses.replace(problem, windows=windows, observation=observation, adjustments=adjustments)
-
-
-def _observed_body(scene: Scene, body: str | None) -> DanoBody:
-    if body is None:
-        if len(scene.bodies) != 1:
-            raise SysidError(f"the scene has {len(scene.bodies)} DANOs: name the one the masks show")
-        return scene.bodies[0]
-    for b in scene.bodies:
-        if b.name == body:
-            return b
-    raise SysidError(f"the masks show DANO {body!r}, which the scene does not have ({[b.name for b in scene.bodies]})")
 
 
 def _first_frames(field, camera, masks, visible, fps, com, start_pose, config: MaskConfig, progress) -> Track:
