@@ -257,10 +257,14 @@ def _sysid(args: argparse.Namespace) -> None:
         low, high = result.intervals[name]
         print(f"{name:<20} {value:>12.6g} {result.stderr[name]:>12.3g}   [{low:.6g}, {high:.6g}]")
     rotation = "not fitted" if result.rms_rotation is None else f"{np.degrees(result.rms_rotation):.3g} deg"
+    if result.rms_position is None:
+        fitted_to = f"observation {result.rms_observation:.3g} (noise units)"
+    else:
+        fitted_to = f"position {result.rms_position * 1e3:.3g} mm, rotation {rotation}"
     print(
         f"loss {result.loss[0]:.4g} -> {result.loss[-1]:.4g} in {result.iterations} iterations ({result.message}), "
-        f"{result.seconds:.2f} s; rms error: position {result.rms_position * 1e3:.3g} mm, "
-        f"rotation {rotation}; {problem.n_windows} window(s) of {problem.n_frames} frames"
+        f"{result.seconds:.2f} s; rms error: {fitted_to}; "
+        f"{problem.n_windows} window(s) of {problem.n_frames} frames"
     )
     for kind, change in result.adjustments.items():
         print(f"adjusted {kind}: {json.dumps(change)}")
