@@ -20,10 +20,11 @@ SIZE = (0.09, 0.06, 0.03)
 FPS = 120.0
 
 
-def _scene(mu: float) -> Scene:
+def _scene(mu: float, fps: float = FPS) -> Scene:
     obj = build_dano(BoxField(SIZE), n_points=200, mass=0.1)
     body = DanoBody("soap", obj, pos=(0.0, 0.0, SIZE[2] / 2), vel=(1.0, 0.2, 0.0), angvel=(0.0, 0.0, 2.0))
-    return Scene(timestep=1 / FPS, substeps=4, bodies=(body,), contact=ContactParams(sliding_friction=mu))
+    substeps = int(round(480 / fps))
+    return Scene(timestep=1 / fps, substeps=substeps, bodies=(body,), contact=ContactParams(sliding_friction=mu))
 
 
 def _problem(mu_data: float, frames: int = 6):
@@ -84,3 +85,68 @@ def test_masks_that_cannot_be_fitted_are_refused():
         mask_problem(scene, np.ones((5, 10, 10)), camera, FPS, ["friction"])
     with pytest.raises(MaskError, match="first mask is empty"):
         mask_problem(scene, np.zeros((5, 24, 32)), camera, FPS, ["friction"])
+
+
+def _filmed_slide(folder, mu: float, frames: int, fps: float):
+    """A box slid at friction `mu`, simulated and filmed by MuJoCo (64 x 48 px); the scene
+    TOML (friction 0.3), the DANO file and the true poses of the first 4 frames written beside."""
+    import trimesh
+
+    from dano.io import save_dano
+    from dano.math import quat_to_mat
+    from dano.sim.run import Simulation, body_poses
+    from dano.sysid.data import write_track
+    from dano.vision import render_video
+
+    scene = _scene(mu, fps)
+    sim = Simulation.from_scene(scene)
+    poses = body_poses(sim.run(frames - 1), sim)["soap"]
+    obj = scene.bodies[0].dano
+    origin = poses[:, :3] - np.asarray(quat_to_mat(jnp.asarray(poses[:, 3:]))) @ np.asarray(obj.com)
+    camera = camera_from_fov(64, 48, np.radians(50.0), look_at([0.07, -0.2, 0.22], [0.07, 0.0, 0.0]))
+    video = render_video(trimesh.creation.box(SIZE), np.concatenate([origin, poses[:, 3:]], axis=1), camera,
+                         folder / "video", fps=fps, progress=False)  # fmt: skip
+    save_dano(folder / "box.dano.npz", obj)
+    write_track(folder / "start.csv", Track(t=np.arange(4) / fps, pos=poses[:4, :3], quat=poses[:4, 3:]))
+    (folder / "scene.toml").write_text(
+        f'[sim]\ntimestep = {1 / fps}\nsubsteps = {scene.substeps}\n[ground]\nheight = 0.0\n[[body]]\nname = "soap"\n'
+        f'dano = "box.dano.npz"\npos = [0, 0, {SIZE[2] / 2}]\n[contact]\nsliding_friction = 0.3\n'
+    )
+    return video
+
+
+@pytest.mark.slow
+def test_dano_sysid_identifies_friction_from_a_filmed_slide(tmp_path, capsys):
+    """End to end through the CLI: MuJoCo's pictures of a box sliding at mu = 0.5, identified from
+    the masks alone (the first 4 poses give the initial state), starting from mu = 0.3."""
+    import json
+
+    from dano.cli import main
+
+    video = _filmed_slide(tmp_path, 0.5, frames=12, fps=60.0)
+    plot = tmp_path / "fit.png"
+    args = ["sysid", "--scene", str(tmp_path / "scene.toml"), "--masks", str(video / "masks"), "--camera",
+            str(video / "camera.json"), "--fps", "60", "--fit", "friction", "--traj", str(tmp_path / "start.csv"),
+            "--interval", "gauss-newton", "--json", "--plot", str(plot)]  # fmt: skip
+    assert main(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert abs(out["params"]["friction"] - 0.5) < 0.025
+    assert out["rms"]["position"] is None and 0.0 < out["rms"]["observation"] < 0.2
+    assert out["adjustments"]["horizons"] == [8, 11]
+    assert plot.stat().st_size > 10_000
+
+
+def test_dano_sysid_refuses_mask_options_that_do_not_fit(tmp_path, capsys):
+    from dano.cli import main
+
+    base = ["sysid", "--scene", str(tmp_path / "scene.toml"), "--fit", "friction"]
+    assert main([*base, "--masks", str(tmp_path)]) == 1
+    assert "--camera CAMERA.json" in capsys.readouterr().err
+    assert main([*base, "--traj", "a.csv", "--camera", "c.json"]) == 1
+    assert "go with --masks" in capsys.readouterr().err
+    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--window", "5", "--fps", "30"]) == 1
+    assert "--window applies to pose files" in capsys.readouterr().err
+    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--init-from", "track"]) == 1
+    assert "needs the track" in capsys.readouterr().err
+    assert main([*base]) == 1
+    assert "give the observations" in capsys.readouterr().err

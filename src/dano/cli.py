@@ -232,6 +232,8 @@ def _simulate(args: argparse.Namespace) -> None:
 
 
 def _sysid(args: argparse.Namespace) -> None:
+    import dataclasses
+
     from dano.plotting import plot_identification
     from dano.sysid.pipeline import SysidConfig, identify_files
 
@@ -240,14 +242,41 @@ def _sysid(args: argparse.Namespace) -> None:
         raise DanoError("--fit names at least one parameter, e.g. --fit friction,mass_scale")
     config = SysidConfig(
         fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=args.gravity, body=args.body,
-        window=args.window, initial=args.fit_initial, sigma=args.sigma, init=_parse_pairs(args.init, "--init", 1),
+        window=args.window, initial=args.fit_initial or "none", sigma=args.sigma,
+        init=_parse_pairs(args.init, "--init", 1),
         bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
         rotation_weight=args.rotation_weight, settle=args.settle, interval=args.interval, level=args.level,
         frames=args.frames, loss=args.loss, orientation=args.orientation,
     )  # fmt: skip
-    problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
-    if args.plot:
-        plot_identification(problem, result, args.plot)
+    if args.masks is None:
+        if args.camera is not None or args.field is not None or args.start_pose is not None:
+            raise DanoError("--camera, --field and --start-pose go with --masks")
+        if not args.traj:
+            raise DanoError("give the observations: --traj POSES.csv, or --masks DIR with --camera CAMERA.json")
+        problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
+        if args.plot:
+            plot_identification(problem, result, args.plot)
+    else:
+        from dano.plotting import plot_masks
+        from dano.vision.pixels import identify_mask_files
+
+        if args.camera is None:
+            raise DanoError("--masks needs the camera that filmed them: --camera CAMERA.json")
+        if len(args.traj or []) > 1:
+            raise DanoError("with --masks, --traj is one pose CSV of the first frames (the initial state)")
+        if args.init_from == "track" and not args.traj:
+            raise DanoError("--init-from track needs the track: --traj POSES.csv (e.g. from dano track)")
+        if args.init_from == "first-frames" and args.traj:
+            raise DanoError("--init-from first-frames tracks the first masks itself: drop --traj")
+        pose = args.start_pose
+        start_pose = None if pose is None else (np.asarray(pose[:3]), np.asarray(pose[3:]))
+        config = dataclasses.replace(config, initial=args.fit_initial or "state")
+        problem, result = identify_mask_files(
+            args.scene, args.masks, args.camera, config, start=args.traj[0] if args.traj else None,
+            start_pose=start_pose, field=args.field, progress=not args.json,
+        )  # fmt: skip
+        if args.plot:
+            plot_masks(problem, result, args.plot)
     if args.json:
         print(json.dumps(result.summary()))
         return
@@ -511,9 +540,21 @@ def parser() -> argparse.ArgumentParser:
                    help="also time the rollout apart: compile, run, and its DANO contact vs the engine")  # fmt: skip
     s.set_defaults(run=_simulate)
 
-    y = sub.add_parser("sysid", help="identify friction, mass scale, ... from observed pose trajectories")
+    y = sub.add_parser("sysid", help="identify friction, mass scale, ... from pose trajectories or object masks")
     y.add_argument("--scene", required=True, help="scene .toml: the object, the table, contact parameters")
-    y.add_argument("--traj", action="append", required=True, help="pose CSV t,x,y,z,qw,qx,qy,qz (repeatable)")
+    y.add_argument("--traj", action="append",
+                   help="pose CSV t,x,y,z,qw,qx,qy,qz (repeatable); with --masks: the first frames' poses")  # fmt: skip
+    y.add_argument("--masks", help="folder of one object mask per frame (white = object, name order; all black: "
+                   "no mask that frame): identify end to end, simulating and rendering the silhouette")  # fmt: skip
+    y.add_argument("--camera", help="with --masks: camera JSON {width, height, fx, fy, cx, cy, c2w} (metric)")
+    y.add_argument("--init-from", choices=["track", "first-frames"],
+                   help="with --masks: the initial state from --traj (track) or from tracking the first "
+                   "masks (first-frames; the default without --traj)")  # fmt: skip
+    y.add_argument("--start-pose", type=_checked(_numbers(7, "x,y,z,qw,qx,qy,qz", 3)),
+                   help="with --masks: the field frame's pose in the first frame, where tracking the first "
+                   "frames starts (default: a guess from the first mask)")  # fmt: skip
+    y.add_argument("--field", help="with --masks: the field the silhouette is rendered from, in the DANO's frame "
+                   "(grid/checkpoint .npz, mesh, spec; default: the DANO's baked grid)")  # fmt: skip
     y.add_argument("--fit", required=True, help="comma-separated: friction, mass_scale, inertia_scale, contact keys")
     y.add_argument(
         "--json",
@@ -521,7 +562,9 @@ def parser() -> argparse.ArgumentParser:
         help='one JSON object {"params", "stderr", "intervals", "interval", "loss", "iterations", "converged", '
         '"message", "rms", "seconds", "flags", "adjustments"}',
     )
-    y.add_argument("--plot", type=_output(*PLOT), help="PNG of observed vs fitted trajectories and the loss")
+    y.add_argument("--plot", type=_output(*PLOT),
+                   help="PNG of observed vs fitted trajectories (with --masks: masks, simulated silhouettes and "
+                   "their difference) and the loss")  # fmt: skip
     y.add_argument("--fps", type=_POSITIVE, help="frame rate of files without a t column")
     y.add_argument("--scale", type=_POSITIVE, help="metres per unit of the positions in the files")
     y.add_argument(
@@ -537,8 +580,9 @@ def parser() -> argparse.ArgumentParser:
     )
     y.add_argument("--body", help="the scene body that files without a body column observe")
     y.add_argument("--window", type=_int(1), help="frame intervals per shooting window (default: whole trajectories)")
-    y.add_argument("--fit-initial", choices=["none", "velocity", "state"], default="none",
-                   help="also fit each window's initial velocity, or pose and velocity (default: none)")  # fmt: skip
+    y.add_argument("--fit-initial", choices=["none", "velocity", "state"],
+                   help="also fit each window's initial velocity, or pose and velocity (default: none; "
+                   "with --masks: state)")  # fmt: skip
     y.add_argument("--sigma", type=_POSITIVE, default=1e-3, help="tracking noise, m (default 0.001)")
     y.add_argument("--init", help="initial guesses name=value,... (default: the scene's values)")
     y.add_argument("--bounds", help="bounds name=low:high,... (default: Table I ranges, widened)")

@@ -83,6 +83,50 @@ def plot_identification(problem, result, path: str | Path, max_windows: int = 6)
     return _save(fig, path)
 
 
+def plot_masks(problem, result, path: str | Path, n_frames: int = 8) -> Path:
+    """Saves a PNG for an identification from masks (`dano.vision.pixels`): for `n_frames` frames
+    spread over the video, the mask, the DANO's silhouette simulated at the estimate, and their
+    difference (red: mask only, blue: silhouette only), each over the frame's window; and the loss
+    per iteration.
+    """
+    from dano.vision.pixels import PixelObservation, simulated_silhouettes
+
+    observation = problem.observation
+    if not isinstance(observation, PixelObservation):
+        raise TypeError("plot_masks needs a problem fitted to masks (dano.vision.pixels.mask_problem)")
+    opacity, mask = simulated_silhouettes(problem, result.theta, result.delta)
+    shape = observation.shape
+    n = len(opacity)
+    picks = np.unique(np.linspace(0, n - 1, min(n_frames, n)).round().astype(int))
+    rows, cols = shape
+    fig = plt.figure(figsize=(1.5 * len(picks) * cols / rows + 3.6, 5.2))
+    grid = fig.add_gridspec(3, len(picks) + 1, width_ratios=[1.0] * len(picks) + [1.6 * len(picks) * rows / cols / 4])
+    axes = np.array([[fig.add_subplot(grid[r, c]) for c in range(len(picks))] for r in range(3)])
+    fps = 1.0 / problem.scene.timestep
+    for c, k in enumerate(picks):
+        seen, sim = mask[k].reshape(shape), opacity[k].reshape(shape)
+        difference = seen - sim
+        axes[0, c].imshow(seen, cmap="gray", vmin=0, vmax=1)
+        axes[1, c].imshow(sim, cmap="gray", vmin=0, vmax=1)
+        axes[2, c].imshow(difference, cmap="bwr_r", vmin=-1, vmax=1)
+        axes[0, c].set_title(f"frame {k + 1}\n{(k + 1) / fps:.3f} s", fontsize=8)
+        for r in range(3):
+            axes[r, c].set_xticks([])
+            axes[r, c].set_yticks([])
+    for r, label in enumerate(["mask", "simulated", "mask − sim."]):
+        axes[r, 0].set_ylabel(label)
+    ax = fig.add_subplot(grid[:, -1])
+    ax.semilogy(np.arange(len(result.loss)), np.maximum(result.loss, 1e-300), "o-", color="black", ms=3)
+    ax.set_xlabel("iteration (last horizon)")
+    ax.set_ylabel("loss ½Σr²")
+    fitted = "\n".join(f"{k} = {v:.4g} ± {result.stderr[k]:.2g}" for k, v in result.params.items())
+    ax.set_title(fitted, fontsize=8)
+    names = ", ".join(o.name for o in problem.observed)
+    fig.suptitle(f"{names}: masks and the silhouette simulated at the estimate (each frame's window)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def plot_rests(comparison, path: str | Path, title: str = "") -> Path:
     """Fig. 8 of the paper, measured: each model at its rest pose on the floor, seen from the side
     (x-z) and from the front (y-z): level-set meshes as their faces, the DANO as its points."""

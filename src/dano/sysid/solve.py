@@ -139,7 +139,8 @@ def _compiled(problem: Problem, jac: str, loss_name: str = "l2"):
         return problem.cache[key]
 
     def loss(theta, delta, windows):
-        r = robust(residuals(problem, theta, delta, windows), loss_name)
+        r = residuals(problem, theta, delta, windows)
+        r = r if loss_name == "l2" else robust(r, loss_name)  # robust: pose residuals only
         return 0.5 * jnp.sum(r * r)
 
     def normal_equations(theta, delta, windows):

@@ -476,7 +476,9 @@ def _read_rgba(path: Path, background: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return colour, None
 
 
-def read_mask(path: str | Path, size: tuple[int, int] | None = None) -> Float[np.ndarray, "h w"]:
+def read_mask(
+    path: str | Path, size: tuple[int, int] | None = None, allow_empty: bool = False
+) -> Float[np.ndarray, "h w"]:
     """Reads a mask image as (h, w) float32 in [0, 1], white = object.
 
     Colour masks are averaged over R, G, B; an alpha channel multiplies the result, so white
@@ -485,9 +487,10 @@ def read_mask(path: str | Path, size: tuple[int, int] | None = None) -> Float[np
     Args:
         path: the image.
         size: (height, width) it must have, or None.
+        allow_empty: accept an all-black mask (a frame where segmentation found nothing).
 
     Raises:
-        VisionDataError: unreadable, of another size, or empty (all black).
+        VisionDataError: unreadable, of another size, or empty (all black) unless allowed.
     """
     path = Path(path)
     image = read_image(path)
@@ -496,7 +499,7 @@ def read_mask(path: str | Path, size: tuple[int, int] | None = None) -> Float[np
         mask = mask * image[:, :, -1]
     if size is not None and mask.shape != tuple(size):
         raise VisionDataError(f"{path}: mask is {mask.shape[1]}x{mask.shape[0]}, its image {size[1]}x{size[0]}")
-    if not np.any(mask > 0):
+    if not allow_empty and not np.any(mask > 0):
         raise VisionDataError(f"{path}: empty mask (all black): the object is not in the frame")
     return mask
 
@@ -874,31 +877,37 @@ def _rgb(image: np.ndarray) -> np.ndarray:
     return image[:, :, :3] if image.shape[2] >= 3 else np.repeat(image[:, :, :1], 3, axis=2)
 
 
-def load_masks(folder: str | Path, n_expected: int, size: tuple[int, int]) -> Float[np.ndarray, "n h w"]:
+def load_masks(
+    folder: str | Path, n_expected: int | None, size: tuple[int, int], allow_empty: bool = False
+) -> Float[np.ndarray, "n h w"]:
     """Reads one mask per frame from a folder of images, in name order (module docstring).
 
     Args:
         folder: holding .png/.jpg masks, white = object.
-        n_expected: the number of frames.
+        n_expected: the number of frames (None: as many as there are masks).
         size: (height, width) of the frames.
+        allow_empty: accept all-black masks (frames where segmentation found nothing).
 
     Returns:
         (n_expected, height, width) float32 in [0, 1].
 
     Raises:
         VisionDataError: naming the file or folder: a frame without a mask (the first missing
-            index), an extra mask, a mask of another size, an empty mask.
+            index), an extra mask, a mask of another size, an empty mask (unless allowed), no masks.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise VisionDataError(f"{folder}: no such folder of masks")
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise VisionDataError(f"{folder}: no mask images (.png, .jpg) in it")
+    n_expected = len(files) if n_expected is None else n_expected
     if len(files) < n_expected:
         raise VisionDataError(f"{folder}: {len(files)} masks for {n_expected} frames: no mask for frame {len(files)}"
                               + (" and after" if n_expected - len(files) > 1 else ""))  # fmt: skip
     if len(files) > n_expected:
         raise VisionDataError(f"{files[n_expected]}: {len(files)} masks for {n_expected} frames; this one is extra")
-    return np.stack([read_mask(f, size) for f in files])
+    return np.stack([read_mask(f, size, allow_empty) for f in files])
 
 
 def colour_key_masks(

@@ -32,6 +32,7 @@ a silhouette's edge are not, so they are optimistic (narrower than the truth).
 
 import dataclasses
 from collections.abc import Sequence
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -48,6 +49,7 @@ from dano.math import quat_to_mat, smootherstep
 from dano.sim.scene import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.frames import scene_dano
+from dano.sysid.pipeline import SysidConfig
 from dano.sysid.problem import AbstractObservation, Problem, Recording, SysidError, Windows, make_problem
 from dano.sysid.solve import Identification, identify
 from dano.vision.data import Camera, camera_rays
@@ -84,6 +86,7 @@ class PixelObservation(AbstractObservation):
         sigma: opacity noise: residuals are in units of it.
         barycentre_weight: w, as the tracker's.
         n_rays: R, pixels per frame's window.
+        shape: (rows, columns) of every frame's window (rows · columns = R).
     """
 
     field: AbstractField
@@ -96,6 +99,7 @@ class PixelObservation(AbstractObservation):
     sigma: float = eqx.field(static=True)
     barycentre_weight: float = eqx.field(static=True)
     n_rays: int = eqx.field(static=True)
+    shape: tuple[int, int] = eqx.field(static=True)
 
     @property
     def per_frame(self) -> int:
@@ -312,6 +316,7 @@ def _observation(problem: Problem, name, field, peak, com, camera, masks, visibl
         field=field, peak=float(peak), centre=jnp.asarray(0.5 * (lo + hi)), radius=0.5 * float(np.linalg.norm(hi - lo)),
         n_samples=config.n_samples, qpos=observed.qpos, com=jnp.asarray(com), sigma=float(config.sigma),
         barycentre_weight=float(config.barycentre_weight), n_rays=int(index.shape[1]),
+        shape=(int(size[0]), int(size[1])),
     )  # fmt: skip
     return observation, targets
 
@@ -461,3 +466,89 @@ def identify_masks(
     bar.close()
     adjustments = {**result.adjustments, "horizons": [*horizons, n]}
     return dataclasses.replace(result, seconds=result.seconds + seconds, adjustments=adjustments)
+
+
+def identify_mask_files(
+    scene_path: str | Path,
+    masks_dir: str | Path,
+    camera_path: str | Path,
+    config: SysidConfig,
+    start: str | Path | None = None,
+    start_pose: tuple[np.ndarray, np.ndarray] | None = None,
+    field: str | None = None,
+    mask_config: MaskConfig = MaskConfig(),
+    progress: bool = True,
+) -> tuple[Problem, Identification]:
+    """What `dano sysid --masks` runs: the scene, a folder of masks (one per frame, in name order;
+    all-black frames carry no residuals) and the camera in, identified parameters out.
+
+    Args:
+        config: `fit`, `fps` (required: the masks' frame rate), `body`, `init`, `bounds`, `max_steps`,
+            `interval`, `level` and `initial` (default for masks: "state") apply; the options about pose
+            files (window, loss, orientation, gravity, scale, size, frames) are refused.
+        start: a pose CSV of the body's centre of mass over (at least) the first 3 frames, e.g. from
+            `dano track` (default: the first frames tracked here).
+        start_pose: the field frame's pose in the first frame for that tracking (default: a guess).
+        field: a field source (`dano.build.field_from_source`) to render the silhouette from, in the
+            DANO's frame (default: the DANO's baked grid).
+
+    Raises:
+        SysidError: an option that does not apply to masks, no fps; MaskError, VisionDataError: as
+            `mask_problem`, `load_masks`, `load_camera`.
+    """
+    from dano.sim.scene import load_scene
+    from dano.sysid.data import TrackFileError, read_tracks
+    from dano.sysid.problem import canonical
+    from dano.vision.data import load_camera, load_masks
+
+    pose_only = {
+        "window": config.window is not None, "loss": config.loss != "l2", "orientation": config.orientation != "track",
+        "gravity": config.gravity is not None, "scale": config.scale is not None, "size": config.size is not None,
+        "frames": config.frames is not None,
+    }  # fmt: skip
+    refused = [k for k, given in pose_only.items() if given]
+    if refused:
+        raise SysidError(f"--{refused[0]} applies to pose files, not to masks (the camera and the scene are metric)")
+    if config.fps is None:
+        raise SysidError("give the masks' frame rate (--fps)")
+    scene = load_scene(scene_path)
+    camera = load_camera(camera_path)
+    masks = load_masks(masks_dir, None, (camera.height, camera.width), allow_empty=True)
+    target = scene_dano(scene, config.body, "the masks show")
+    start_track = None
+    if start is not None:
+        try:  # its own clock if it has a t column, else the masks'
+            tracks = read_tracks(start)
+        except TrackFileError as e:
+            if "no t column" not in str(e):
+                raise
+            tracks = read_tracks(start, fps=config.fps)
+        if len(tracks) == 1:
+            start_track = next(iter(tracks.values()))
+        elif target.name in tracks:
+            start_track = tracks[target.name]
+        else:
+            raise SysidError(f"{start}: no track of body {target.name!r} (it has {sorted(tracks)})")
+    own = None
+    if field is not None:
+        from dano.build import field_from_source
+        from dano.types import DANO
+
+        own = field_from_source(field)
+        if isinstance(own, DANO):
+            raise MaskError(
+                f"{field}: the silhouette is rendered from a field (grid, checkpoint, mesh, spec), not a DANO"
+            )
+    names = [canonical(n) for n in config.fit]
+    by_name = dict(zip(config.fit, names, strict=True))
+    init = {by_name.get(k, canonical(k)): v for k, v in config.init.items()}
+    bounds = {by_name.get(k, canonical(k)): v for k, v in config.bounds.items()}
+    problem = mask_problem(
+        scene, masks, camera, config.fps, names, body=target.name, start=start_track, start_pose=start_pose,
+        field=own, config=mask_config, initial=config.initial, progress=progress,
+    )  # fmt: skip
+    result = identify_masks(
+        problem, init=init, bounds=bounds, labels=tuple(config.fit), first_frames=mask_config.first_frames,
+        max_steps=config.max_steps, interval=config.interval, level=config.level, progress=progress,
+    )  # fmt: skip
+    return problem, result
