@@ -150,3 +150,18 @@ def test_dano_sysid_refuses_mask_options_that_do_not_fit(tmp_path, capsys):
     assert "needs the track" in capsys.readouterr().err
     assert main([*base]) == 1
     assert "give the observations" in capsys.readouterr().err
+
+
+def test_windows_follow_the_object_not_stray_pixels():
+    from dano.vision.track import largest_parts, windows
+
+    masks = np.zeros((3, 40, 60))
+    masks[:, 10:20, 20:35] = 1.0
+    stray = masks.copy()
+    stray[:, 38, 2] = stray[:, 1, 58] = 1.0  # false pixels in the corners
+    stray[1] = 0.0  # a dropped frame takes the one before's part
+    held = largest_parts(stray, visible=np.array([True, False, True]))
+    np.testing.assert_array_equal(held, masks)
+    (size, corners), (size_true, corners_true) = windows(held), windows(masks)
+    assert size == size_true and windows(stray)[0] != size
+    np.testing.assert_array_equal(corners, corners_true)

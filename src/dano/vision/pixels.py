@@ -53,7 +53,7 @@ from dano.sysid.pipeline import SysidConfig
 from dano.sysid.problem import AbstractObservation, Problem, Recording, SysidError, Windows, make_problem
 from dano.sysid.solve import Identification, identify
 from dano.vision.data import Camera, camera_rays
-from dano.vision.track import Silhouette, TrackConfig, downsample, render_silhouette, track, windows
+from dano.vision.track import Silhouette, TrackConfig, downsample, largest_parts, render_silhouette, track, windows
 
 
 class MaskError(DanoError):
@@ -285,7 +285,7 @@ def _observation(problem: Problem, name, field, peak, com, camera, masks, visibl
     """The `PixelObservation` and each window's `MaskTargets` (one window: frames 1..n-1)."""
     if problem.n_windows != 1:  # make_problem was asked for one window
         raise SysidError("identification from masks simulates the video as one window")
-    held = _largest_parts(masks, visible)
+    held = largest_parts(masks, visible)
     (height, width), _ = windows(held, config.margin)
     factor = max(1, -(-max(height, width) // config.max_size))
     small, cam = downsample(masks, camera, factor)
@@ -370,26 +370,6 @@ def soft_edged(field: AbstractField, peak: float, width: float, max_nodes: int =
     d = -np.asarray(d) - np.where(inside, -0.5 * spacing, 0.5 * spacing)  # negative inside, to the midpoints
     occupancy = np.asarray(smootherstep(jnp.asarray(-d / width)))
     return GridField(jnp.asarray(occupancy), (tuple(bounds[0]), tuple(upper)))
-
-
-def _largest_parts(masks: np.ndarray, visible: np.ndarray) -> np.ndarray:
-    """Each mask's largest connected part (where the windows go); an empty frame takes the last
-    visible frame's."""
-    from scipy import ndimage
-
-    out = np.zeros_like(masks)
-    last = None
-    for k, m in enumerate(masks):
-        if visible[k]:
-            labels, n = ndimage.label(m > 0.5)  # pyright: ignore[reportGeneralTypeIssues]
-            if n > 1:
-                sizes = ndimage.sum_labels(np.ones_like(m), labels, index=np.arange(1, n + 1))
-                last = (labels == 1 + int(np.argmax(sizes))).astype(float)
-            else:
-                last = (m > 0.5).astype(float)
-        assert last is not None  # the first frame is visible
-        out[k] = last
-    return out
 
 
 def simulated_silhouettes(problem: Problem, theta, delta) -> tuple[np.ndarray, np.ndarray]:

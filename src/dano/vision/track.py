@@ -182,6 +182,28 @@ def windows(masks: np.ndarray, margin: float = 0.3) -> tuple[tuple[int, int], np
     return (height, width), np.stack([top, left], axis=1)
 
 
+def largest_parts(masks: np.ndarray, visible: np.ndarray | None = None) -> np.ndarray:
+    """Each mask's largest connected part (where the windows go, so a few false pixels far from the
+    object do not move or grow them); a frame not `visible` (default: all are) takes the last
+    visible frame's."""
+    from scipy import ndimage
+
+    out = np.zeros_like(masks)
+    last = None
+    visible = np.ones(len(masks), dtype=bool) if visible is None else visible
+    for k, m in enumerate(masks):
+        if visible[k]:
+            labels, n = ndimage.label(m > 0.5)  # pyright: ignore[reportGeneralTypeIssues]
+            if n > 1:
+                sizes = ndimage.sum_labels(np.ones_like(m), labels, index=np.arange(1, n + 1))
+                last = (labels == 1 + int(np.argmax(sizes))).astype(float)
+            else:
+                last = (m > 0.5).astype(float)
+        assert last is not None  # the first frame is visible
+        out[k] = last
+    return out
+
+
 def crop(s: Silhouette, masks: np.ndarray, size: tuple[int, int], corners: np.ndarray):
     """Per frame: the window's rays (origins, directions, uv stacked over frames) and its mask pixels;
     `s` renders the whole image of the masks (n, h, w), `size` and `corners` are from `windows`."""
@@ -245,11 +267,13 @@ def track(
     empty = np.flatnonzero(masks.reshape(len(masks), -1).max(axis=1) <= 0)
     if len(empty):
         raise TrackError(f"mask of frame {int(empty[0])} is empty: the object must be visible in every frame")
-    (height, width), _ = windows(masks)
+    held = largest_parts(masks)  # the windows follow the object, not stray pixels
+    (height, width), _ = windows(held)
     factor = max(1, -(-max(height, width) // config.max_size))
     small, cam = downsample(masks, camera, factor)
     s = silhouette(field, cam, config)
-    size, corners = windows(small)
+    held_small, _ = downsample(held, camera, factor)
+    size, corners = windows(held_small)
     rays, targets = crop(s, small, size, corners)
     optimiser = optax.scale_by_adam()
 
@@ -272,7 +296,7 @@ def track(
         return pos, quat / jnp.linalg.norm(quat), loss(delta)
 
     start = time.perf_counter()
-    pos, quat = initial_pose(s, small[0], cam) if init is None else (np.asarray(init[0]), np.asarray(init[1]))
+    pos, quat = initial_pose(s, held_small[0], cam) if init is None else (np.asarray(init[0]), np.asarray(init[1]))
     positions, quats, losses = [], [], []
     for k in tqdm(range(len(small)), desc="track", unit="frame", disable=not progress):
         guess_pos, guess_quat = jnp.asarray(pos, dtype=float), jnp.asarray(quat, dtype=float)
