@@ -165,3 +165,22 @@ def test_windows_follow_the_object_not_stray_pixels():
     (size, corners), (size_true, corners_true) = windows(held), windows(masks)
     assert size == size_true and windows(stray)[0] != size
     np.testing.assert_array_equal(corners, corners_true)
+
+
+def test_half_turn_flips_of_a_tracked_box_are_undone():
+    from scipy.spatial.transform import Rotation
+
+    from dano.vision.pixels import unflipped
+
+    def wxyz(r):
+        x, y, z, w = r.as_quat().T
+        return np.stack([w, x, y, z], axis=-1)
+
+    turning = Rotation.from_euler("zx", np.stack([0.3 * np.arange(6), 0.05 * np.arange(6)], axis=1))
+    truth = wxyz(turning)
+    tracked = truth.copy()
+    tracked[2] = wxyz(turning[2] * Rotation.from_euler("x", np.pi))  # seen upside down
+    tracked[4] = -wxyz(turning[4] * Rotation.from_euler("z", np.pi))  # turned round (and the other sign)
+    fixed = unflipped(tracked)
+    np.testing.assert_allclose(np.abs(np.sum(fixed * truth, axis=1)), 1.0, atol=1e-12)
+    np.testing.assert_array_equal(unflipped(truth), truth)  # a plausible track is left alone

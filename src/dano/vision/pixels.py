@@ -45,7 +45,7 @@ from dano.errors import DanoError
 from dano.fields import AbstractField
 from dano.fields.base import Bounds, CallableField, as_bounds
 from dano.fields.grid import GridField
-from dano.math import quat_to_mat, smootherstep
+from dano.math import quat_conj, quat_mul, quat_to_mat, smootherstep
 from dano.sim.scene import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.frames import scene_dano
@@ -266,9 +266,38 @@ def _first_frames(field, camera, masks, visible, fps, com, start_pose, config: M
     if k < 3:
         raise MaskError(f"the first 3 masks must show the object to start from (frame {k} is empty)")
     result = track(field, camera, masks[:k], TrackConfig(), init=start_pose, progress=progress)
-    rot = np.asarray(quat_to_mat(jnp.asarray(result.quats)))
+    quats = unflipped(result.quats)
+    rot = np.asarray(quat_to_mat(jnp.asarray(quats)))
     pos = result.positions + np.einsum("tij,j->ti", rot, com)
-    return Track(t=np.arange(k) / fps, pos=pos, quat=result.quats, source="masks (first frames tracked)")
+    return Track(t=np.arange(k) / fps, pos=pos, quat=quats, source="masks (first frames tracked)")
+
+
+_HALF_TURNS = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+"""The identity and the half turns about the object frame's x, y and z axes (w, x, y, z)."""
+
+
+def unflipped(quats: Float[np.ndarray, "n 4"]) -> Float[np.ndarray, "n 4"]:
+    """Tracked orientations with half-turn flips undone: a frame more than 90° from where the frames
+    before put it (at constant angular velocity) becomes whichever of q, q·Rx(π), q·Ry(π), q·Rz(π)
+    is nearest that prediction. A mask cannot tell these apart for an object symmetric about its
+    frame's axes (a box: the tracker may report it upside down from one frame to the next), and a
+    turn of more than 90° between two frames is no slide's; the initial angular velocity read
+    from a flipped frame would be absurd.
+    """
+    quats = np.asarray(quats, dtype=float)
+    out = [quats[0]]
+    for k in range(1, len(quats)):
+        guess = out[-1] if k < 2 else np.asarray(quat_mul(quat_mul(out[-1], quat_conj(out[-2])), out[-1]))
+        if _angle(quats[k], guess) > 0.5 * np.pi:
+            candidates = np.asarray(quat_mul(jnp.asarray(quats[k])[None], jnp.asarray(_HALF_TURNS)))
+            out.append(min(candidates, key=lambda c: _angle(c, guess)))
+        else:
+            out.append(quats[k])
+    return np.stack(out)
+
+
+def _angle(a: np.ndarray, b: np.ndarray) -> float:
+    return float(2.0 * np.arccos(np.clip(abs(float(np.dot(a, b))), 0.0, 1.0)))
 
 
 def _padded(start: Track, n: int, dt: float) -> Track:
