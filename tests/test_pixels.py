@@ -140,15 +140,15 @@ def test_dano_sysid_refuses_mask_options_that_do_not_fit(tmp_path, capsys):
     from dano.cli import main
 
     base = ["sysid", "--scene", str(tmp_path / "scene.toml"), "--fit", "friction"]
-    assert main([*base, "--masks", str(tmp_path)]) == 1
+    assert main([*base, "--masks", str(tmp_path)]) == 2
     assert "--camera CAMERA.json" in capsys.readouterr().err
-    assert main([*base, "--traj", "a.csv", "--camera", "c.json"]) == 1
+    assert main([*base, "--traj", "a.csv", "--camera", "c.json"]) == 2
     assert "go with --masks" in capsys.readouterr().err
-    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--window", "5", "--fps", "30"]) == 1
+    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--window", "5", "--fps", "30"]) == 2
     assert "--window applies to pose files" in capsys.readouterr().err
-    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--init-from", "track"]) == 1
+    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--init-from", "track"]) == 2
     assert "needs the track" in capsys.readouterr().err
-    assert main([*base]) == 1
+    assert main([*base]) == 2
     assert "give the observations" in capsys.readouterr().err
 
 
