@@ -268,8 +268,18 @@ def _first_frames(field, camera, masks, visible, fps, com, start_pose, config: M
     result = track(field, camera, masks[:k], TrackConfig(), init=start_pose, progress=progress)
     quats = unflipped(result.quats)
     rot = np.asarray(quat_to_mat(jnp.asarray(quats)))
-    pos = result.positions + np.einsum("tij,j->ti", rot, com)
+    pos = _quadratic(result.positions + np.einsum("tij,j->ti", rot, com))
     return Track(t=np.arange(k) / fps, pos=pos, quat=quats, source="masks (first frames tracked)")
+
+
+def _quadratic(pos: Float[np.ndarray, "k 3"]) -> Float[np.ndarray, "k 3"]:
+    """The least-squares quadratic in time through the positions: the initial velocity is read from
+    the first three frames, and one noisy mask (an eroded or dilated edge moves the tracked depth by
+    millimetres) would otherwise set it."""
+    t = np.arange(len(pos), dtype=float)
+    basis = np.stack([np.ones_like(t), t, t * t], axis=1)
+    coef, *_ = np.linalg.lstsq(basis, pos, rcond=None)
+    return basis @ coef
 
 
 _HALF_TURNS = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
