@@ -115,6 +115,16 @@ def prepare(scene: Scene, recordings: list[Recording], config: SysidConfig) -> t
     return scene, recordings
 
 
+def canonical_fit(config: SysidConfig) -> tuple[list[str], dict, dict]:
+    """The fitted parameters' canonical names, and the initial guesses and bounds keyed by them
+    (the user may write either name)."""
+    names = [canonical(n) for n in config.fit]
+    by_name = dict(zip(config.fit, names, strict=True))
+    init = {by_name.get(k, canonical(k)): v for k, v in config.init.items()}
+    bounds = {by_name.get(k, canonical(k)): v for k, v in config.bounds.items()}
+    return names, init, bounds
+
+
 def identify_files(
     scene_path: str | Path, traj_paths: Sequence[str | Path], config: SysidConfig, progress: bool = True
 ) -> tuple[Problem, Identification]:
@@ -129,10 +139,7 @@ def identify_files(
     if config.frames is not None:
         adjustments["frames"] = list(config.frames)
     scene, recordings = prepare(scene, recordings, config)
-    names = [canonical(n) for n in config.fit]
-    by_name = dict(zip(config.fit, names, strict=True))
-    init = {by_name.get(k, canonical(k)): v for k, v in config.init.items()}
-    bounds = {by_name.get(k, canonical(k)): v for k, v in config.bounds.items()}
+    names, init, bounds = canonical_fit(config)
 
     def build(scene, observed=None):
         return make_problem(

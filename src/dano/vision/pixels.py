@@ -49,7 +49,7 @@ from dano.math import quat_conj, quat_mul, quat_to_mat, smootherstep
 from dano.sim.scene import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.frames import scene_dano
-from dano.sysid.pipeline import SysidConfig
+from dano.sysid.pipeline import SysidConfig, canonical_fit
 from dano.sysid.problem import AbstractObservation, Problem, Recording, SysidError, Windows, make_problem
 from dano.sysid.solve import Identification, identify
 from dano.vision.data import Camera, camera_rays
@@ -517,7 +517,6 @@ def identify_mask_files(
     """
     from dano.sim.scene import load_scene
     from dano.sysid.data import TrackFileError, read_tracks
-    from dano.sysid.problem import canonical
     from dano.vision.data import load_camera, load_masks
 
     pose_only = {
@@ -558,10 +557,7 @@ def identify_mask_files(
             raise MaskError(
                 f"{field}: the silhouette is rendered from a field (grid, checkpoint, mesh, spec), not a DANO"
             )
-    names = [canonical(n) for n in config.fit]
-    by_name = dict(zip(config.fit, names, strict=True))
-    init = {by_name.get(k, canonical(k)): v for k, v in config.init.items()}
-    bounds = {by_name.get(k, canonical(k)): v for k, v in config.bounds.items()}
+    names, init, bounds = canonical_fit(config)
     problem = mask_problem(
         scene, masks, camera, config.fps, names, body=target.name, start=start_track, start_pose=start_pose,
         field=own, config=mask_config, initial=config.initial, progress=progress,
