@@ -14,7 +14,16 @@ from dano.sim import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.problem import residuals
 from dano.vision import camera_from_fov, look_at
-from dano.vision.pixels import MaskConfig, MaskError, MaskTargets, mask_problem, simulated_silhouettes
+from dano.vision.pixels import (
+    MaskConfig,
+    MaskError,
+    MaskTargets,
+    PixelObservation,
+    blurred,
+    gaussian_blur,
+    mask_problem,
+    simulated_silhouettes,
+)
 
 SIZE = (0.09, 0.06, 0.03)
 FPS = 120.0
@@ -48,8 +57,11 @@ def _problem(mu_data: float, frames: int = 6):
     return problem, windows
 
 
-def test_pixel_loss_gradient_matches_central_differences():
+@pytest.mark.parametrize("blur", [0.0, 1.5])
+def test_pixel_loss_gradient_matches_central_differences(blur):
     problem, windows = _problem(0.5)
+    problem = blurred(dataclasses.replace(problem, windows=windows), blur)
+    windows = problem.windows
 
     def loss(theta, delta):
         r = residuals(problem, theta, delta, windows)
@@ -76,6 +88,42 @@ def test_the_loss_is_least_at_the_friction_that_made_the_masks():
 
     values = [loss(mu) for mu in (0.3, 0.5, 0.7)]
     assert values[1] < 1e-12 < min(values[0], values[2])
+
+
+def test_gaussian_blur_rows_are_normalised_gaussians_of_the_width():
+    np.testing.assert_array_equal(gaussian_blur(7, 0.0), np.eye(7))
+    g = gaussian_blur(41, 2.5)
+    np.testing.assert_allclose(g.sum(axis=1), 1.0)
+    k = np.arange(41)
+    middle = g[20]
+    assert middle @ k == pytest.approx(20.0)
+    assert middle @ (k - 20.0) ** 2 == pytest.approx(2.5**2, rel=1e-6)
+    assert g[0] @ k > 0.0 and g[0, 0] > middle[20]  # cut at the window's edge, renormalised
+
+
+def test_blurred_residuals_are_the_sharp_residual_images_blurred():
+    """Each frame's pixel residuals, as an image of the window's (rows, columns), blurred down its
+    columns then along its rows; the barycentre residuals unchanged; zero where the masks are met."""
+    problem, windows = _problem(0.5)
+    problem = dataclasses.replace(problem, windows=windows)
+    observation = problem.observation
+    assert isinstance(observation, PixelObservation)
+    rows, cols = observation.shape
+    assert rows != cols  # a transposed image would not fit
+    theta, delta = jnp.asarray([0.35]), jnp.zeros((1, problem.n_state))
+    sharp = np.asarray(residuals(problem, theta, delta, problem.windows))[0]
+    blur = blurred(problem, 1.5)
+    soft = np.asarray(residuals(blur, theta, delta, blur.windows))[0]
+    n = observation.n_rays
+    images = sharp[:, :n].reshape(-1, rows, cols)
+    expected = np.stack([gaussian_blur(rows, 1.5) @ image @ gaussian_blur(cols, 1.5).T for image in images])
+    assert np.abs(images).max() > 1.0
+    np.testing.assert_allclose(soft[:, :n], expected.reshape(len(images), -1), atol=1e-12)
+    np.testing.assert_allclose(soft[:, n:], sharp[:, n:], atol=1e-12)
+    at_truth = np.asarray(residuals(blur, jnp.asarray([0.5]), delta, blur.windows))
+    assert np.abs(at_truth).max() < 1e-9
+    with pytest.raises(MaskError, match="blur width"):
+        blurred(problem, -1.0)
 
 
 def test_masks_that_cannot_be_fitted_are_refused():

@@ -486,12 +486,15 @@ def _window(r: Recording, observed, qpos0, qvel0, mocap, ctrl, external, s: int,
 
 def _settle(world: World, params: Params, gravity, observed, row: dict, margin: float) -> dict[str, dict]:
     """Puts DANOs that start within `margin` of the ground at their resting height (in place);
-    returns what changed per body name: `moved_m` along the normal, `normal_speed_dropped_m_s`.
+    returns what changed per body name: `moved_m` along the normal, `normal_speed_dropped_m_s`,
+    `tilt_rate_dropped_rad_s`.
 
     The height is where the contact spring carries the weight, k ψ = m |g·n| (ψ from the smooth
     inside indicator), found by bisection along the ground normal n with the orientation kept; the
-    velocity along n is dropped. The penalty contact is stiff: 0.3 mm too deep and a flat face
-    pushes with hundreds of times its weight, so a height read from noisy data cannot be used as is.
+    velocity along n and the spin about axes in the ground plane (rocking, which the contact damps
+    within a substep; read from noisy poses it is mostly noise) are dropped. The penalty contact
+    is stiff: 0.3 mm too deep and a flat face pushes with hundreds of times its weight, so a height
+    read from noisy data cannot be used as is.
     """
     from scipy.spatial.transform import Rotation
 
@@ -525,7 +528,14 @@ def _settle(world: World, params: Params, gravity, observed, row: dict, margin: 
         row["qpos"][o.qpos : o.qpos + 3] = x + shift * n
         v = row["qvel"][o.qvel : o.qvel + 3]
         row["qvel"][o.qvel : o.qvel + 3] = v - (v @ n) * n
-        settled[o.name] = {"moved_m": float(shift), "normal_speed_dropped_m_s": float(v @ n)}
+        n_body = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix().T @ n  # the free joint's spin is in its frame
+        w = row["qvel"][o.qvel + 3 : o.qvel + 6]
+        tilt = w - (w @ n_body) * n_body
+        row["qvel"][o.qvel + 3 : o.qvel + 6] = w - tilt
+        settled[o.name] = {
+            "moved_m": float(shift), "normal_speed_dropped_m_s": float(v @ n),
+            "tilt_rate_dropped_rad_s": float(np.linalg.norm(tilt)),
+        }  # fmt: skip
     return settled
 
 
