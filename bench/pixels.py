@@ -17,7 +17,7 @@ the tracker may report it turned by 180°, which the pose fit reads as a rotatio
 relative error of each pipeline over the noisy cases and their ratio.
 
 Run: `python bench/pixels.py [--objects box,bunny] [--fps 30,60,120] [--noise clean,noisy]`
-(all 12 cases: ~30 min on 2 cores).
+(the 8 cases at 30 and 60 fps: 55 min on 2 cores with tests running beside it for 25 of them).
 """
 
 import argparse
