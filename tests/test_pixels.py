@@ -52,7 +52,7 @@ def _problem(mu_data: float, frames: int = 6):
     opacity, _ = simulated_silhouettes(problem, jnp.asarray([mu_data]), jnp.zeros((1, problem.n_state)))
     observed = problem.windows.observed
     assert isinstance(observed, MaskTargets)
-    truth = MaskTargets(observed.origins, observed.directions, observed.uv, jnp.asarray(opacity)[None])
+    truth = dataclasses.replace(observed, mask=jnp.asarray(opacity)[None])
     windows = dataclasses.replace(problem.windows, observed=truth)
     return problem, windows
 

@@ -528,7 +528,7 @@ def _settle(world: World, params: Params, gravity, observed, row: dict, margin: 
         row["qpos"][o.qpos : o.qpos + 3] = x + shift * n
         v = row["qvel"][o.qvel : o.qvel + 3]
         row["qvel"][o.qvel : o.qvel + 3] = v - (v @ n) * n
-        n_body = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix().T @ n  # the free joint's spin is in its frame
+        n_body = _in_body(q, n)  # the free joint's spin is in its frame
         w = row["qvel"][o.qvel + 3 : o.qvel + 6]
         tilt = w - (w @ n_body) * n_body
         row["qvel"][o.qvel + 3 : o.qvel + 6] = w - tilt
@@ -537,6 +537,13 @@ def _settle(world: World, params: Params, gravity, observed, row: dict, margin: 
             "tilt_rate_dropped_rad_s": float(np.linalg.norm(tilt)),
         }  # fmt: skip
     return settled
+
+
+def _in_body(quat: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """World vector `v` in the frame of a body at orientation `quat` (w, x, y, z)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_quat(quat[[1, 2, 3, 0]]).as_matrix().T @ v
 
 
 def _basis(observed, row: dict, settled: set[str], initial: str, n: np.ndarray) -> np.ndarray:
@@ -548,8 +555,6 @@ def _basis(observed, row: dict, settled: set[str], initial: str, n: np.ndarray) 
     velocities are nearly unobservable there (the contact damps them within a substep) and only
     let the fit wander; everywhere else all 6 (or 12) directions are free.
     """
-    from scipy.spatial.transform import Rotation
-
     blocks = []
     for o in observed:
         k = {"none": 0, "velocity": 1, "state": 2}[initial]
@@ -557,7 +562,7 @@ def _basis(observed, row: dict, settled: set[str], initial: str, n: np.ndarray) 
             blocks += [np.eye(o.n_velocity)] * k
             continue
         q = row["qpos"][o.qpos + 3 : o.qpos + 7]
-        n_body = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix().T @ n
+        n_body = _in_body(q, n)
         t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
         t1 /= np.linalg.norm(t1)
         t2 = np.cross(n, t1)

@@ -70,9 +70,9 @@ class MaskTargets(eqx.Module):
     uv: Float[Array, "*n w r 2"]
     """Pixel centres in image-size units (0..1), for the barycentres."""
     mask: Float[Array, "*n w r"]
-    blur_rows: Float[Array, "*n a a"] | None = None
-    """The residual image's blur down its columns (`blurred`; None: none)."""
-    blur_cols: Float[Array, "*n b b"] | None = None
+    blur_rows: Float[Array, "*n a a"]
+    """The residual image's blur down its columns, then along its rows (`blurred`; identities: none)."""
+    blur_cols: Float[Array, "*n b b"]
 
 
 def gaussian_blur(n: int, width: float) -> Float[np.ndarray, "n n"]:
@@ -92,15 +92,12 @@ def blurred(problem: Problem, width: float) -> Problem:
     so a Gauss-Newton step moves a misplaced silhouette by about a pixel per iteration; blurred by
     a few pixels, the residual's Jacobian reaches as far, and steps as long. Same shapes: the
     problem's compiled functions are reused."""
-    observation = problem.observation
-    if not isinstance(observation, PixelObservation):
+    observation, observed = problem.observation, problem.windows.observed
+    if not (isinstance(observation, PixelObservation) and isinstance(observed, MaskTargets)):
         raise SysidError("blurred needs a problem fitted to masks (mask_problem)")
     if not (np.isfinite(width) and width >= 0):
         raise MaskError(f"the blur width must be a non-negative number of pixels, got {width}")
     rows, cols = observation.shape
-    observed = problem.windows.observed
-    if not isinstance(observed, MaskTargets):
-        raise SysidError("blurred needs a problem fitted to masks (mask_problem)")
     targets = dataclasses.replace(
         observed,
         blur_rows=jnp.asarray(gaussian_blur(rows, width))[None],
@@ -159,11 +156,9 @@ class PixelObservation(AbstractObservation):
         opacity = self.silhouettes(qpos, observed)
         shift = jax.vmap(_barycentre)(opacity, observed.uv) - jax.vmap(_barycentre)(observed.mask, observed.uv)
         scale = float(np.sqrt(self.n_rays * self.barycentre_weight))
-        difference = opacity - observed.mask
-        if observed.blur_rows is not None and observed.blur_cols is not None:
-            image = difference.reshape(-1, *self.shape)
-            image = jnp.einsum("ij,wjk,lk->wil", observed.blur_rows, image, observed.blur_cols)
-            difference = image.reshape(difference.shape)
+        image = (opacity - observed.mask).reshape(-1, *self.shape)
+        image = jnp.einsum("ij,wjk,lk->wil", observed.blur_rows, image, observed.blur_cols)
+        difference = image.reshape(opacity.shape)
         return jnp.concatenate([difference, scale * shift], axis=1) / self.sigma
 
     def rms(self, r: np.ndarray, windows: Windows) -> float:
@@ -497,8 +492,8 @@ def identify_masks(
     The first `first_frames` frames are fitted, then twice as many from that estimate (θ and the
     initial state), and so on to the whole video; each horizon is fitted with the residuals blurred
     by each width of `blur` in turn (`blurred`, coarse to fine, the last 0); the intervals are
-    computed on the last fit (sharp, all frames). Each
-    horizon reuses the problem's compiled functions (only the frames' weights change). A horizon
+    computed on the last fit (sharp, all frames). Each stage reuses the problem's compiled
+    functions (only the frames' weights and the blur matrices change). A horizon
     over which the simulation from a poor guess drifts out of the masks would give no gradient:
     a friction 0.3 too low moves a box sliding for 0.27 s by 10 cm, more than its length.
 
