@@ -249,8 +249,8 @@ def _sysid(args: argparse.Namespace) -> None:
         frames=args.frames, loss=args.loss, orientation=args.orientation,
     )  # fmt: skip
     if args.masks is None:
-        if args.camera is not None or args.field is not None or args.start_pose is not None:
-            raise DanoError("--camera, --field and --start-pose go with --masks")
+        if args.camera is not None or args.field is not None or args.start_pose is not None or args.refine_frames:
+            raise DanoError("--camera, --field, --start-pose and --refine-frames go with --masks")
         if not args.traj:
             raise DanoError("give the observations: --traj POSES.csv, or --masks DIR with --camera CAMERA.json")
         problem, result = identify_files(args.scene, args.traj, config, progress=not args.json)
@@ -258,7 +258,7 @@ def _sysid(args: argparse.Namespace) -> None:
             plot_identification(problem, result, args.plot)
     else:
         from dano.plotting import plot_masks
-        from dano.vision.pixels import identify_mask_files
+        from dano.vision.pixels import MaskConfig, identify_mask_files
 
         if args.camera is None:
             raise DanoError("--masks needs the camera that filmed them: --camera CAMERA.json")
@@ -274,6 +274,7 @@ def _sysid(args: argparse.Namespace) -> None:
         problem, result = identify_mask_files(
             args.scene, args.masks, args.camera, config, start=args.traj[0] if args.traj else None,
             start_pose=start_pose, field=args.field, progress=not args.json,
+            mask_config=MaskConfig(refine=tuple(r for r in (args.refine_frames or "").split(",") if r)),
         )  # fmt: skip
         if args.plot:
             plot_masks(problem, result, args.plot)
@@ -555,6 +556,8 @@ def parser() -> argparse.ArgumentParser:
                    "frames starts (default: a guess from the first mask)")  # fmt: skip
     y.add_argument("--field", help="with --masks: the field the silhouette is rendered from, in the DANO's frame "
                    "(grid/checkpoint .npz, mesh, spec; default: the DANO's baked grid)")  # fmt: skip
+    y.add_argument("--refine-frames", help="with --masks, comma-separated: also fit small corrections to the camera's "
+                   "extrinsics (camera) and the field's pose in the DANO's frame (object)")  # fmt: skip
     y.add_argument("--fit", required=True, help="comma-separated: friction, mass_scale, inertia_scale, contact keys")
     y.add_argument(
         "--json",

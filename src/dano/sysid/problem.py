@@ -150,9 +150,20 @@ class AbstractObservation(eqx.Module):
     instead of the pose residuals; the windows' `observed` holds its per-window data."""
 
     @abc.abstractmethod
-    def residuals(self, qpos: Float[Array, "w nq"], observed) -> Float[Array, "w k"]:
+    def residuals(self, qpos: Float[Array, "w nq"], observed, params: Float[Array, " m"]) -> Float[Array, "w k"]:
         """Residuals (w, k) of a window's simulated qpos at its frames 1..W against `observed`
-        (the window's slice of `Windows.observed`)."""
+        (the window's slice of `Windows.observed`), with the observation's own unknowns `params`
+        (`n_params` of them, fitted per window after its initial state's: a camera correction, ...)."""
+
+    @property
+    def n_params(self) -> int:
+        """m: the observation's own unknowns per window (none by default)."""
+        return 0
+
+    def param_bounds(self, observed) -> tuple[np.ndarray, np.ndarray]:
+        """(n, m) bounds on the observation's unknowns of each window (`Windows.observed`)."""
+        n = int(jax.tree_util.tree_leaves(observed)[0].shape[0])
+        return np.zeros((n, self.n_params)), np.zeros((n, self.n_params))
 
     @property
     @abc.abstractmethod
@@ -221,12 +232,12 @@ class Problem:
 
     @property
     def n_state(self) -> int:
-        """Initial-state unknowns per window."""
-        return int(self.windows.basis.shape[2])
+        """Unknowns per window: its initial state's (`start_state`), then the observation's own."""
+        return int(self.windows.basis.shape[2]) + (self.observation.n_params if self.observation is not None else 0)
 
     def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """(n, s) bounds on the initial-state unknowns: a pose correction within 5σ of the observed
-        pose (5σ/L for a rotation), velocities free."""
+        """(n, s) bounds on each window's unknowns: a pose correction within 5σ of the observed
+        pose (5σ/L for a rotation), velocities free; then the observation's (`param_bounds`)."""
         per = []
         for o in self.observed:
             if self.initial == "state":
@@ -236,7 +247,10 @@ class Problem:
         basis = np.asarray(self.windows.basis)
         # every column of the basis is one unit direction of one block, so it inherits that block's bound
         limit = np.array([[full[np.argmax(np.abs(col))] for col in b.T] for b in basis]).reshape(self.n_windows, -1)
-        return -limit, limit
+        if self.observation is None or self.observation.n_params == 0:
+            return -limit, limit
+        lo, hi = self.observation.param_bounds(self.windows.observed)
+        return np.concatenate([-limit, lo], axis=1), np.concatenate([limit, hi], axis=1)
 
     @property
     def n_residuals(self) -> int:
@@ -594,7 +608,7 @@ def start_state(problem: Problem, w: Windows, delta: Float[Array, " s"]) -> tupl
     qpos, qvel = w.qpos, w.qvel
     if problem.initial == "none":
         return qpos, qvel
-    delta = w.basis @ delta
+    delta = w.basis @ delta[: w.basis.shape[-1]]  # the observation's own unknowns follow
     i = 0
     for o in problem.observed:
         if problem.initial == "state":
@@ -620,7 +634,7 @@ def window_residuals(
     """
     q = simulate_window(problem, theta, delta, w, checkpoint=False)[1:]
     if problem.observation is not None:
-        r = problem.observation.residuals(q, w.observed)
+        r = problem.observation.residuals(q, w.observed, delta[w.basis.shape[-1] :])
         return jnp.where(w.mask[:, None] > 0, r, 0.0)
     out = []
     for b, o in enumerate(problem.observed):

@@ -45,7 +45,7 @@ from dano.errors import DanoError
 from dano.fields import AbstractField
 from dano.fields.base import Bounds, CallableField, as_bounds
 from dano.fields.grid import GridField
-from dano.math import quat_conj, quat_mul, quat_to_mat, smootherstep
+from dano.math import quat_conj, quat_exp, quat_mul, quat_to_mat, smootherstep
 from dano.sim.scene import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.frames import scene_dano
@@ -54,6 +54,9 @@ from dano.sysid.problem import AbstractObservation, Problem, Recording, SysidErr
 from dano.sysid.solve import Identification, identify
 from dano.vision.data import Camera, camera_rays
 from dano.vision.track import Silhouette, TrackConfig, downsample, largest_parts, render_silhouette, track, windows
+
+REFINED = ("camera", "object")
+"""What `MaskConfig.refine` may name: the camera's extrinsics, the field's pose in the DANO's frame."""
 
 
 class MaskError(DanoError):
@@ -73,6 +76,10 @@ class MaskTargets(eqx.Module):
     blur_rows: Float[Array, "*n a a"]
     """The residual image's blur down its columns, then along its rows (`blurred`; identities: none)."""
     blur_cols: Float[Array, "*n b b"]
+    correction: Float[Array, "*n 12"]
+    """The camera's and the object frame's corrections fitted so far (`PixelObservation.moved`):
+    camera rotation vector (about its centre, world) and translation, then the field's rotation
+    vector (about the centre of mass, body frame) and translation (body frame); zeros: none."""
 
 
 def gaussian_blur(n: int, width: float) -> Float[np.ndarray, "n n"]:
@@ -121,6 +128,12 @@ class PixelObservation(AbstractObservation):
         barycentre_weight: w, as the tracker's.
         n_rays: R, pixels per frame's window.
         shape: (rows, columns) of every frame's window (rows · columns = R).
+        eye: (3,) the camera's centre, world (what a camera correction turns about).
+        refine: what is fitted with θ besides the initial state, in this order: "camera" (its
+            extrinsics: rotation vector about its centre and translation, world, 6) and "object" (the
+            field's pose in the DANO's frame: rotation vector about the centre of mass and
+            translation, 6); small corrections within `limits`.
+        limits: (rotation, rad; translation, m) bounds on every component of those corrections.
     """
 
     field: AbstractField
@@ -134,15 +147,58 @@ class PixelObservation(AbstractObservation):
     barycentre_weight: float = eqx.field(static=True)
     n_rays: int = eqx.field(static=True)
     shape: tuple[int, int] = eqx.field(static=True)
+    eye: Float[Array, " 3"]
+    refine: tuple[str, ...] = eqx.field(static=True, default=())
+    limits: tuple[float, float] = eqx.field(static=True, default=(0.05, 0.02))
 
     @property
     def per_frame(self) -> int:
         return self.n_rays + 2
 
-    def silhouettes(self, qpos: Float[Array, "w nq"], observed: MaskTargets) -> Float[Array, "w r"]:
-        """The rendered opacity of the DANO at each frame's pose, over the frame's window."""
+    @property
+    def n_params(self) -> int:
+        return 6 * len(self.refine)
+
+    def param_bounds(self, observed: MaskTargets) -> tuple[np.ndarray, np.ndarray]:
+        """Each correction's total (what `observed` holds plus the unknowns) within `limits`."""
+        limit = np.tile(np.repeat(np.asarray(self.limits, dtype=float), 3), 2)
+        total = np.asarray(observed.correction)
+        cols = np.concatenate([np.arange(6) + 6 * REFINED.index(r) for r in self.refine]).astype(int)
+        return (-limit - total)[:, cols], (limit - total)[:, cols]
+
+    def moved(self, observed: MaskTargets, params: Float[Array, " m"]) -> MaskTargets:
+        """`observed` with the unknowns `params` added to its corrections (one window)."""
+        full = jnp.zeros(12, params.dtype)
+        for k, r in enumerate(self.refine):
+            full = full.at[6 * REFINED.index(r) : 6 * REFINED.index(r) + 6].set(params[6 * k : 6 * k + 6])
+        return dataclasses.replace(observed, correction=observed.correction + full)
+
+    def field_poses(self, qpos: Float[Array, "w nq"], correction: Float[Array, " 12"]):
+        """The field frame's origin (w, 3) and orientation (w, 4) as the given camera would see it.
+
+        The field sits in the DANO's frame at the object correction (rotation R_o about the centre
+        of mass, translation t_o): x_dano = com + R_o (x_field − com) + t_o. A camera moved by
+        (R_c about its centre c, then t_c) sees what the given camera sees of the world moved by the
+        inverse, x ↦ c + R_cᵀ (x − c − t_c): that is applied to the field's pose.
+        """
         pos, quat = qpos[:, self.qpos : self.qpos + 3], qpos[:, self.qpos + 3 : self.qpos + 7]
-        origin = pos - jnp.einsum("wij,j->wi", quat_to_mat(quat), self.com)  # the field frame's origin
+        camera_rot, camera_shift = quat_exp(correction[0:3]), correction[3:6]
+        object_rot, object_shift = quat_exp(correction[6:9]), correction[9:12]
+        local = object_shift - quat_to_mat(object_rot) @ self.com  # the field's origin, DANO frame about the com
+        origin = pos + jnp.einsum("wij,j->wi", quat_to_mat(quat), local)
+        quat = quat_mul(quat, object_rot[None])
+        inverse = quat_to_mat(camera_rot).T
+        eye = self.eye[None, :]
+        origin = eye + (origin - eye - camera_shift[None, :]) @ inverse.T
+        return origin, quat_mul(quat_conj(camera_rot)[None], quat)
+
+    def silhouettes(
+        self, qpos: Float[Array, "w nq"], observed: MaskTargets, params: Float[Array, " m"] | None = None
+    ) -> Float[Array, "w r"]:
+        """The rendered opacity of the DANO at each frame's pose, over the frame's window."""
+        if params is not None:
+            observed = self.moved(observed, params)
+        origin, quat = self.field_poses(qpos, observed.correction)
 
         def frame(p, q, origins, directions, uv):  # each pixel's opacity: the mean over its rays
             r, k = directions.shape[:2]
@@ -152,8 +208,10 @@ class PixelObservation(AbstractObservation):
 
         return jax.vmap(jax.checkpoint(frame))(origin, quat, observed.origins, observed.directions, observed.uv)
 
-    def residuals(self, qpos: Float[Array, "w nq"], observed: MaskTargets) -> Float[Array, "w k"]:
-        opacity = self.silhouettes(qpos, observed)
+    def residuals(
+        self, qpos: Float[Array, "w nq"], observed: MaskTargets, params: Float[Array, " m"]
+    ) -> Float[Array, "w k"]:
+        opacity = self.silhouettes(qpos, observed, params)
         shift = jax.vmap(_barycentre)(opacity, observed.uv) - jax.vmap(_barycentre)(observed.mask, observed.uv)
         scale = float(np.sqrt(self.n_rays * self.barycentre_weight))
         image = (opacity - observed.mask).reshape(-1, *self.shape)
@@ -191,10 +249,16 @@ class MaskConfig:
             density would pull it in where two faces meet), and makes the loss smooth at the scale
             of a pixel: measured on a box sliding at 1.6 m/s, a 0.75 mm edge (a third of a pixel)
             took 4 horizons of ~50 Levenberg-Marquardt iterations each, a 3 mm one 20-30.
-        first_frames: the fit is continued over growing horizons: the first this many frames, then
-            twice as many, ..., then all (`identify_masks`); a horizon over which the simulation drifts
-            out of the masks gives no gradient.
-        init_frames: frames tracked for the initial state when no start track is given.
+        first_seconds: the fit is continued over growing horizons: the frames of the first this many
+            seconds, then twice as many, ..., then all (`identify_masks`); a horizon over which the
+            simulation drifts out of the masks gives no gradient, and one too short for friction to
+            act leaves μ free to trade against the initial velocity: counted in frames (8), the
+            first horizon at 120 fps was 0.07 s, over which a friction error of 0.15 moves the box
+            ½·0.15·g·t² = 3 mm, a pixel; the fit went to μ 0.8 there and never came back
+            (bench/pixels.py, box 120 fps noisy: μ 0.75 for 0.4).
+        init_seconds: the first frames of this many seconds (at least 3) are tracked for the initial
+            state when no start track is given; a body starting within `settle` of the ground is
+            put on it along the camera's rays (`_along_rays`).
         pose_sigma: how far the first frames' poses may be off, m: the initial pose is fitted within
             5 of it.
         settle: a body whose lowest point starts within this distance (m) of the ground is started
@@ -208,6 +272,9 @@ class MaskConfig:
             the edge's ramp, and Levenberg-Marquardt crawled there a pixel per step (the same case:
             every stage at the 50-iteration limit, μ off by 6 %; blurred first, every stage converged,
             1.4 %).
+        refine: fitted with θ and the initial state (`PixelObservation.refine`): "camera" (its
+            extrinsics) and/or "object" (the field's pose in the DANO's frame), small corrections.
+        refine_limits: (rad, m): every component of those corrections within these.
     """
 
     sigma: float = 0.1
@@ -217,11 +284,13 @@ class MaskConfig:
     margin: float = 0.3
     supersample: int = 2
     edge: float = 1.0
-    first_frames: int = 8
-    init_frames: int = 6
+    first_seconds: float = 0.25
+    init_seconds: float = 0.2
     pose_sigma: float = 2e-3
     settle: float = 0.02
     blur: tuple[float, ...] = (2.0, 0.0)
+    refine: tuple[str, ...] = ()
+    refine_limits: tuple[float, float] = (0.05, 0.02)
 
 
 def dano_field(body: DanoBody) -> tuple[AbstractField, float]:
@@ -261,7 +330,7 @@ def mask_problem(
         body: the observed DANO (default: the scene's only one).
         start: the body's poses (centre of mass, world) over at least the first 3 frames, for the
             initial state (e.g. from `dano track`); default: `dano.vision.track` on the first
-            `config.init_frames` masks.
+            `config.init_seconds` of masks.
         start_pose: (position (3,), quat (4,)) of the DANO's own frame in the first frame, where the
             tracker starts (default: its guess from the first mask, unrotated).
         field: the density the silhouette is rendered from, in the DANO's frame (default: the grid
@@ -279,6 +348,12 @@ def mask_problem(
         raise MaskError(f"need at least 3 frames of masks, got {len(masks)}")
     if not (np.isfinite(fps) and fps > 0):
         raise MaskError(f"fps must be positive, got {fps}")
+    unknown = [r for r in config.refine if r not in REFINED]
+    if unknown or len(set(config.refine)) != len(config.refine):
+        raise MaskError(f"refine names each of {REFINED} at most once, got {tuple(config.refine)}")
+    limits = np.asarray(config.refine_limits, dtype=float)
+    if limits.shape != (2,) or not np.all(np.isfinite(limits) & (limits > 0)):
+        raise MaskError(f"refine_limits must be two positive numbers (rad, m), got {config.refine_limits}")
     if not np.all(np.isfinite(masks)) or masks.min() < 0 or masks.max() > 1:
         raise MaskError("masks must be finite and in [0, 1]")
     visible = masks.reshape(len(masks), -1).max(axis=1) > 0.5
@@ -291,8 +366,9 @@ def mask_problem(
 
         peak = field_peak(own)
     com = np.asarray(target.dano.com)
+    grounded = None
     if start is None:
-        start = _first_frames(own, camera, masks, visible, fps, com, start_pose, config, progress)
+        start, grounded = _first_frames(own, camera, masks, visible, fps, target, scene, start_pose, config, progress)
     if start.n_frames < 3:
         raise MaskError(f"the start track has {start.n_frames} frames; the initial velocity needs at least 3")
     recording = Recording({target.name: _padded(start, len(masks), 1.0 / fps)})
@@ -303,23 +379,64 @@ def mask_problem(
     mask = problem.windows.mask * jnp.asarray(visible[1:], dtype=problem.windows.mask.dtype)[None, :]
     windows = dataclasses.replace(problem.windows, observed=targets, mask=mask)
     adjustments = dict(problem.adjustments)
+    if grounded is not None:
+        adjustments["start_along_rays"] = grounded
     if not visible.all():
         adjustments["frames_without_mask"] = [int(k) for k in np.flatnonzero(~visible)]
     return dataclasses.replace(problem, windows=windows, observation=observation, adjustments=adjustments)
 
 
-def _first_frames(field, camera, masks, visible, fps, com, start_pose, config: MaskConfig, progress) -> Track:
-    """The centre of mass's track over the first visible frames, by the per-frame tracker."""
+def _first_frames(field, camera, masks, visible, fps, target, scene, start_pose, config: MaskConfig, progress):
+    """The centre of mass's track over the first visible frames (`config.init_seconds`), by the
+    per-frame tracker, put on the ground along the camera's rays where it starts near it
+    (`_along_rays`); with what that moved (None: nothing)."""
+    want = max(3, int(np.ceil(config.init_seconds * fps - 1e-6)))
     k = 0
-    while k < min(config.init_frames, len(masks)) and visible[k]:
+    while k < min(want, len(masks)) and visible[k]:
         k += 1
     if k < 3:
         raise MaskError(f"the first 3 masks must show the object to start from (frame {k} is empty)")
+    com = np.asarray(target.dano.com)
     result = track(field, camera, masks[:k], TrackConfig(), init=start_pose, progress=progress)
     quats = unflipped(result.quats)
     rot = np.asarray(quat_to_mat(jnp.asarray(quats)))
-    pos = _quadratic(result.positions + np.einsum("tij,j->ti", rot, com))
-    return Track(t=np.arange(k) / fps, pos=pos, quat=quats, source="masks (first frames tracked)")
+    pos, moved = _along_rays(
+        result.positions + np.einsum("tij,j->ti", rot, com), rot, target.dano, scene, camera, config
+    )
+    return Track(t=np.arange(k) / fps, pos=_quadratic(pos), quat=quats, source="masks (first frames tracked)"), moved
+
+
+def _along_rays(pos, rot, dano, scene: Scene, camera: Camera, config: MaskConfig):
+    """Tracked centres of mass (k, 3) moved along the camera's rays to the height at which the
+    first frame's orientation rests on the ground, when its lowest point is within `config.settle`
+    of it (a body sliding on the ground keeps its centre's height; the tracked tilts of later frames
+    are no better than their depths); with a report.
+
+    A silhouette fixes where the object is across the view far better than along it: an edge eroded
+    or dilated by a pixel reads as the object farther or nearer, by centimetres at a few dozen pixels
+    (bench/pixels.py, box 120 fps noisy: the first six frames tracked 1.5-3.8 cm above the table and
+    as much off across it, an initial velocity off by 2 m/s). Settling straight down (`make_problem`)
+    keeps the error across; along the ray it goes: there, within 3 mm.
+    """
+    if scene.ground_height is None:
+        return pos, None
+    n = np.asarray(scene.ground_normal, dtype=float)
+    n = n / np.linalg.norm(n)
+    offsets = np.asarray(dano.points, dtype=float) - np.asarray(dano.com, dtype=float)
+    lowest = np.min(np.einsum("ij,pj,i->p", rot[0], offsets, n))  # the first frame's lowest point, from the centre
+    gap = float(pos[0] @ n + lowest - float(scene.ground_height))
+    if not gap <= config.settle:
+        return pos, None
+    eye = np.asarray(camera.position, dtype=float)
+    along = (pos - eye) @ n
+    if np.any(np.abs(along) < 1e-9):  # a ray parallel to the ground: nothing to intersect
+        return pos, None
+    scale = (float(scene.ground_height) - lowest - eye @ n) / along
+    if np.any(scale <= 0):  # the ground behind the camera along a ray
+        return pos, None
+    moved = eye + scale[:, None] * (pos - eye)
+    shift = np.linalg.norm(moved - pos, axis=1)
+    return moved, {"frames": len(pos), "max_moved_m": float(shift.max()), "first_gap_m": gap}
 
 
 def _quadratic(pos: Float[np.ndarray, "k 3"]) -> Float[np.ndarray, "k 3"]:
@@ -395,7 +512,7 @@ def _observation(problem: Problem, name, field, peak, com, camera, masks, visibl
     targets = MaskTargets(
         jnp.asarray(origins[index])[None], jnp.asarray(directions[index])[None], jnp.asarray(uv[index])[None],
         jnp.asarray(np.take_along_axis(flat, index, axis=1))[None],
-        jnp.eye(int(size[0]))[None], jnp.eye(int(size[1]))[None],
+        jnp.eye(int(size[0]))[None], jnp.eye(int(size[1]))[None], jnp.zeros((1, 12)),
     )  # fmt: skip
     observed = next(o for o in problem.observed if o.name == name)
     depth = float(np.linalg.norm(np.asarray(problem.windows.qpos[0, observed.qpos : observed.qpos + 3]) - cam.position))
@@ -406,7 +523,8 @@ def _observation(problem: Problem, name, field, peak, com, camera, masks, visibl
         field=field, peak=float(peak), centre=jnp.asarray(0.5 * (lo + hi)), radius=0.5 * float(np.linalg.norm(hi - lo)),
         n_samples=config.n_samples, qpos=observed.qpos, com=jnp.asarray(com), sigma=float(config.sigma),
         barycentre_weight=float(config.barycentre_weight), n_rays=int(index.shape[1]),
-        shape=(int(size[0]), int(size[1])),
+        shape=(int(size[0]), int(size[1])), eye=jnp.asarray(cam.position), refine=tuple(config.refine),
+        limits=(float(config.refine_limits[0]), float(config.refine_limits[1])),
     )  # fmt: skip
     return observation, targets
 
@@ -471,7 +589,8 @@ def simulated_silhouettes(problem: Problem, theta, delta) -> tuple[np.ndarray, n
         raise SysidError("the problem is not fitted to masks")
     q = simulate_windows(problem, theta, delta)[0, 1:]
     targets = jax.tree_util.tree_map(lambda x: x[0], problem.windows.observed)
-    return np.asarray(observation.silhouettes(q, targets)), np.asarray(targets.mask)
+    params = jnp.asarray(delta)[0, problem.n_state - observation.n_params :]
+    return np.asarray(observation.silhouettes(q, targets, params)), np.asarray(targets.mask)
 
 
 def identify_masks(
@@ -479,7 +598,7 @@ def identify_masks(
     init: dict[str, float] | None = None,
     bounds: dict[str, tuple[float, float]] | None = None,
     labels: tuple[str, ...] | None = None,
-    first_frames: int = MaskConfig.first_frames,
+    first_seconds: float = MaskConfig.first_seconds,
     blur: Sequence[float] = MaskConfig.blur,
     max_steps: int = 50,
     interval: str = "gauss-newton",
@@ -489,10 +608,12 @@ def identify_masks(
 ) -> Identification:
     """`dano.sysid.identify` on a problem from `mask_problem`, continued over growing horizons.
 
-    The first `first_frames` frames are fitted, then twice as many from that estimate (θ and the
+    The frames of the first `first_seconds` are fitted, then twice as many from that estimate (θ and the
     initial state), and so on to the whole video; each horizon is fitted with the residuals blurred
-    by each width of `blur` in turn (`blurred`, coarse to fine, the last 0); the intervals are
-    computed on the last fit (sharp, all frames). Each stage reuses the problem's compiled
+    by each width of `blur` in turn (`blurred`, coarse to fine), the last horizon also sharp (the
+    last width, 0; on a horizon before it the sharp stage crawled to its step limit at 120 fps, 4-5
+    minutes, to be undone by the next horizon's blurred one); the intervals are computed on the
+    last fit (sharp, all frames). Each stage reuses the problem's compiled
     functions (only the frames' weights and the blur matrices change). A horizon
     over which the simulation from a poor guess drifts out of the masks would give no gradient:
     a friction 0.3 too low moves a box sliding for 0.27 s by 10 cm, more than its length.
@@ -502,16 +623,15 @@ def identify_masks(
             it (the pixels' loss is large and not a χ², so the pose fit's absolute `ftol` is no test).
         (others): as `identify`.
     """
-    from dano.sysid.problem import start_state
-
-    if not isinstance(problem.observation, PixelObservation):
+    observation = problem.observation
+    if not isinstance(observation, PixelObservation):
         raise SysidError("identify_masks needs a problem fitted to masks (mask_problem)")
-    if first_frames < 2:
-        raise SysidError(f"first_frames must be at least 2, got {first_frames}")
+    if not (np.isfinite(first_seconds) and first_seconds > 0):
+        raise SysidError(f"first_seconds must be a positive duration, got {first_seconds}")
     full = problem.windows.mask
     n = int(full.shape[1])
     horizons = []
-    h = int(first_frames)
+    h = max(2, int(np.ceil(first_seconds / problem.scene.timestep - 1e-6)))
     while h < n:
         horizons.append(h)
         h *= 2
@@ -520,24 +640,21 @@ def identify_masks(
     blurs = [float(b) for b in blur]
     if not blurs or any(not (np.isfinite(b) and b >= 0) for b in blurs) or blurs[-1] != 0:
         raise SysidError(f"blur must be non-negative widths ending with 0 (the sharp masks), got {tuple(blur)}")
-    total = (len(horizons) + 1) * len(blurs)
-    bar = tqdm(total=total, desc="horizons", unit="stage", disable=None if progress else True, leave=False)
+    coarse = blurs[:-1] or blurs  # a horizon before the last is fitted blurred only: the next one starts blurred again
+    stages = [(h, b) for h in horizons for b in coarse] + [(n, b) for b in blurs]
+    bar = tqdm(total=len(stages), desc="horizons", unit="stage", disable=None if progress else True, leave=False)
     seconds = 0.0
     stage = problem
     for h in [*horizons, n]:
         prefix = full * (jnp.arange(n) < h).astype(full.dtype)[None, :]
-        for b in blurs:
+        for b in coarse if h < n else blurs:
             stage = blurred(dataclasses.replace(current, windows=dataclasses.replace(current.windows, mask=prefix)), b)
             if h == n and b == blurs[-1]:
                 break  # the last: fitted below, with its intervals
             result = identify(stage, init=theta, bounds=bounds, max_steps=max_steps, rtol=rtol, progress=False)
             seconds += result.seconds
             theta = dict(zip(problem.names, (float(v) for v in result.theta), strict=True))
-            w0 = jax.tree_util.tree_map(lambda x: x[0], current.windows)
-            qpos, qvel = start_state(current, w0, jnp.asarray(result.delta[0]))
-            current = dataclasses.replace(
-                current, windows=dataclasses.replace(current.windows, qpos=qpos[None], qvel=qvel[None])
-            )
+            current = _restarted(current, result.delta[0])
             bar.update()
     result = identify(
         stage, init=theta, bounds=bounds, labels=labels, max_steps=max_steps, rtol=rtol, interval=interval,
@@ -546,7 +663,33 @@ def identify_masks(
     bar.update()
     bar.close()
     adjustments = {**result.adjustments, "horizons": [*horizons, n], "blur_px": blurs}
+    if observation.refine:
+        w0 = jax.tree_util.tree_map(lambda x: x[0], _restarted(stage, result.delta[0]).windows.observed)
+        total = np.asarray(w0.correction)
+        for k, name in enumerate(REFINED):
+            if name in observation.refine:
+                adjustments[f"{name}_correction"] = {
+                    "rotation_rad": [float(v) for v in total[6 * k : 6 * k + 3]],
+                    "translation_m": [float(v) for v in total[6 * k + 3 : 6 * k + 6]],
+                }
     return dataclasses.replace(result, seconds=result.seconds + seconds, adjustments=adjustments)
+
+
+def _restarted(problem: Problem, delta: np.ndarray) -> Problem:
+    """The problem started where `delta` (one window's unknowns) put it: the initial state moved
+    (`start_state`) and the observation's corrections added to its targets; the unknowns then 0."""
+    from dano.sysid.problem import start_state
+
+    w0 = jax.tree_util.tree_map(lambda x: x[0], problem.windows)
+    qpos, qvel = start_state(problem, w0, jnp.asarray(delta))
+    observed = problem.windows.observed
+    observation = problem.observation
+    assert isinstance(observation, PixelObservation) and isinstance(observed, MaskTargets)
+    if observation.n_params:
+        params = jnp.asarray(delta)[problem.n_state - observation.n_params :]
+        observed = jax.tree_util.tree_map(lambda x: x[None], observation.moved(w0.observed, params))
+    windows = dataclasses.replace(problem.windows, qpos=qpos[None], qvel=qvel[None], observed=observed)
+    return dataclasses.replace(problem, windows=windows)
 
 
 def identify_mask_files(
@@ -625,7 +768,7 @@ def identify_mask_files(
         field=own, config=mask_config, initial=config.initial, progress=progress,
     )  # fmt: skip
     result = identify_masks(
-        problem, init=init, bounds=bounds, labels=tuple(config.fit), first_frames=mask_config.first_frames,
+        problem, init=init, bounds=bounds, labels=tuple(config.fit), first_seconds=mask_config.first_seconds,
         blur=mask_config.blur, max_steps=config.max_steps, interval=config.interval, level=config.level,
         progress=progress,
     )  # fmt: skip
