@@ -416,7 +416,7 @@ def _along_rays(pos, rot, dano, scene: Scene, camera: Camera, config: MaskConfig
     or dilated by a pixel reads as the object farther or nearer, by centimetres at a few dozen pixels
     (bench/pixels.py, box 120 fps noisy: the first six frames tracked 1.5-3.8 cm above the table and
     as much off across it, an initial velocity off by 2 m/s). Settling straight down (`make_problem`)
-    keeps the error across; along the ray it goes: there, within 3 mm.
+    keeps the error across; along the ray it goes: there, within 5 mm.
     """
     if scene.ground_height is None:
         return pos, None
