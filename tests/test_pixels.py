@@ -77,6 +77,7 @@ def test_pixel_loss_gradient_matches_central_differences(blur, refine):
     problem = blurred(dataclasses.replace(problem, windows=windows), blur)
     windows = problem.windows
 
+    @jax.jit  # compiled once for the central differences' many evaluations
     def loss(theta, delta):
         r = residuals(problem, theta, delta, windows)
         return 0.5 * jnp.sum(r * r)
@@ -137,9 +138,13 @@ def test_a_camera_correction_renders_what_the_moved_camera_sees():
 def test_the_loss_is_least_at_the_friction_that_made_the_masks():
     problem, windows = _problem(0.5, frames=10)
 
+    @jax.jit
+    def objective(theta):
+        r = residuals(problem, theta, jnp.zeros((1, problem.n_state)), windows)
+        return 0.5 * jnp.sum(r * r)
+
     def loss(mu):
-        r = residuals(problem, jnp.asarray([mu]), jnp.zeros((1, problem.n_state)), windows)
-        return float(0.5 * jnp.sum(r * r))
+        return float(objective(jnp.asarray([mu])))
 
     values = [loss(mu) for mu in (0.3, 0.5, 0.7)]
     assert values[1] < 1e-12 < min(values[0], values[2])
@@ -345,7 +350,7 @@ def test_a_camera_a_few_mm_and_degrees_off_is_refined_with_the_friction():
         observed = dataclasses.replace(given.windows.observed, mask=filmed.observed.mask)
         given = dataclasses.replace(given, windows=dataclasses.replace(given.windows, observed=observed))
         fits[refine] = identify_masks(given, init={"sliding_friction": 0.4}, progress=False)
-    plain, refined = fits[()], fits[("camera",)]
+    (_, plain), (fitted, refined) = fits[()], fits[("camera",)]
     assert abs(plain.params["sliding_friction"] - 0.5) > 0.02
     assert abs(refined.params["sliding_friction"] - 0.5) < 0.005
     assert refined.loss[-1] < 0.01 * plain.loss[-1]
@@ -353,3 +358,6 @@ def test_a_camera_a_few_mm_and_degrees_off_is_refined_with_the_friction():
     assert "camera_correction" not in plain.adjustments
     assert np.all(np.abs(correction["rotation_rad"]) <= 0.05) and np.all(np.abs(correction["translation_m"]) <= 0.02)
     assert np.linalg.norm(correction["rotation_rad"]) > 0.01  # it did move the camera
+    # the problem returned is the one the unknowns refer to: its simulation at them shows the masks
+    opacity, mask = simulated_silhouettes(fitted, jnp.asarray(refined.theta), jnp.asarray(refined.delta))
+    assert np.sqrt(np.mean((opacity - mask) ** 2)) < 0.005 < np.sqrt(np.mean(mask**2))

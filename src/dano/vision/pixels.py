@@ -605,8 +605,10 @@ def identify_masks(
     level: float = 0.95,
     rtol: float = 1e-6,
     progress: bool = True,
-) -> Identification:
-    """`dano.sysid.identify` on a problem from `mask_problem`, continued over growing horizons.
+) -> tuple[Problem, Identification]:
+    """`dano.sysid.identify` on a problem from `mask_problem`, continued over growing horizons;
+    the problem the result's unknowns (`delta`) refer to, started where the earlier horizons put it
+    (for `simulated_silhouettes`, `plot_masks`), and the result.
 
     The frames of the first `first_seconds` are fitted, then twice as many from that estimate (θ and the
     initial state), and so on to the whole video; each horizon is fitted with the residuals blurred
@@ -672,7 +674,7 @@ def identify_masks(
                     "rotation_rad": [float(v) for v in total[6 * k : 6 * k + 3]],
                     "translation_m": [float(v) for v in total[6 * k + 3 : 6 * k + 6]],
                 }
-    return dataclasses.replace(result, seconds=result.seconds + seconds, adjustments=adjustments)
+    return stage, dataclasses.replace(result, seconds=result.seconds + seconds, adjustments=adjustments)
 
 
 def _restarted(problem: Problem, delta: np.ndarray) -> Problem:
@@ -704,7 +706,8 @@ def identify_mask_files(
     progress: bool = True,
 ) -> tuple[Problem, Identification]:
     """What `dano sysid --masks` runs: the scene, a folder of masks (one per frame, in name order;
-    all-black frames carry no residuals) and the camera in, identified parameters out.
+    all-black frames carry no residuals) and the camera in, identified parameters out (with the
+    problem they refer to, as `identify_masks`).
 
     Args:
         config: `fit`, `fps` (required: the masks' frame rate), `body`, `init`, `bounds`, `max_steps`,
@@ -767,9 +770,8 @@ def identify_mask_files(
         scene, masks, camera, config.fps, names, body=target.name, start=start_track, start_pose=start_pose,
         field=own, config=mask_config, initial=config.initial, progress=progress,
     )  # fmt: skip
-    result = identify_masks(
+    return identify_masks(
         problem, init=init, bounds=bounds, labels=tuple(config.fit), first_seconds=mask_config.first_seconds,
         blur=mask_config.blur, max_steps=config.max_steps, interval=config.interval, level=config.level,
         progress=progress,
     )  # fmt: skip
-    return problem, result
