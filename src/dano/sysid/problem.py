@@ -608,7 +608,7 @@ def start_state(problem: Problem, w: Windows, delta: Float[Array, " s"]) -> tupl
     qpos, qvel = w.qpos, w.qvel
     if problem.initial == "none":
         return qpos, qvel
-    delta = w.basis @ delta[: w.basis.shape[-1]]  # the observation's own unknowns follow
+    delta = w.basis @ delta[: w.basis.shape[-1]]  # the observation's own unknowns follow (`own_unknowns`)
     i = 0
     for o in problem.observed:
         if problem.initial == "state":
@@ -623,6 +623,11 @@ def start_state(problem: Problem, w: Windows, delta: Float[Array, " s"]) -> tupl
     return qpos, qvel
 
 
+def own_unknowns(w: Windows, delta: Float[Array, " s"]) -> Float[Array, " m"]:
+    """The observation's own unknowns among a window's (`w` unbatched): those after its initial state's."""
+    return delta[w.basis.shape[-1] :]
+
+
 def window_residuals(
     problem: Problem, theta: Float[Array, " p"], delta: Float[Array, " s"], w: Windows
 ) -> Float[Array, "w b 6"] | Float[Array, "w k"]:
@@ -634,7 +639,7 @@ def window_residuals(
     """
     q = simulate_window(problem, theta, delta, w, checkpoint=False)[1:]
     if problem.observation is not None:
-        r = problem.observation.residuals(q, w.observed, delta[w.basis.shape[-1] :])
+        r = problem.observation.residuals(q, w.observed, own_unknowns(w, delta))
         return jnp.where(w.mask[:, None] > 0, r, 0.0)
     out = []
     for b, o in enumerate(problem.observed):

@@ -50,7 +50,15 @@ from dano.sim.scene import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.frames import scene_dano
 from dano.sysid.pipeline import SysidConfig, canonical_fit
-from dano.sysid.problem import AbstractObservation, Problem, Recording, SysidError, Windows, make_problem
+from dano.sysid.problem import (
+    AbstractObservation,
+    Problem,
+    Recording,
+    SysidError,
+    Windows,
+    make_problem,
+    own_unknowns,
+)
 from dano.sysid.solve import Identification, identify
 from dano.vision.data import Camera, camera_rays
 from dano.vision.track import Silhouette, TrackConfig, downsample, largest_parts, render_silhouette, track, windows
@@ -163,14 +171,16 @@ class PixelObservation(AbstractObservation):
         """Each correction's total (what `observed` holds plus the unknowns) within `limits`."""
         limit = np.tile(np.repeat(np.asarray(self.limits, dtype=float), 3), 2)
         total = np.asarray(observed.correction)
-        cols = np.concatenate([np.arange(6) + 6 * REFINED.index(r) for r in self.refine]).astype(int)
-        return (-limit - total)[:, cols], (limit - total)[:, cols]
+        return (-limit - total)[:, self._columns], (limit - total)[:, self._columns]
+
+    @property
+    def _columns(self) -> np.ndarray:
+        """Where the unknowns sit in the 12 corrections (`MaskTargets.correction`)."""
+        return np.array([6 * REFINED.index(r) + k for r in self.refine for k in range(6)], dtype=int)
 
     def moved(self, observed: MaskTargets, params: Float[Array, " m"]) -> MaskTargets:
         """`observed` with the unknowns `params` added to its corrections (one window)."""
-        full = jnp.zeros(12, params.dtype)
-        for k, r in enumerate(self.refine):
-            full = full.at[6 * REFINED.index(r) : 6 * REFINED.index(r) + 6].set(params[6 * k : 6 * k + 6])
+        full = jnp.zeros(12, params.dtype).at[self._columns].set(params)
         return dataclasses.replace(observed, correction=observed.correction + full)
 
     def field_poses(self, qpos: Float[Array, "w nq"], correction: Float[Array, " 12"]):
@@ -588,9 +598,9 @@ def simulated_silhouettes(problem: Problem, theta, delta) -> tuple[np.ndarray, n
     if not isinstance(observation, PixelObservation):
         raise SysidError("the problem is not fitted to masks")
     q = simulate_windows(problem, theta, delta)[0, 1:]
-    targets = jax.tree_util.tree_map(lambda x: x[0], problem.windows.observed)
-    params = jnp.asarray(delta)[0, problem.n_state - observation.n_params :]
-    return np.asarray(observation.silhouettes(q, targets, params)), np.asarray(targets.mask)
+    w0 = jax.tree_util.tree_map(lambda x: x[0], problem.windows)
+    params = own_unknowns(w0, jnp.asarray(delta)[0])
+    return np.asarray(observation.silhouettes(q, w0.observed, params)), np.asarray(w0.observed.mask)
 
 
 def identify_masks(
@@ -666,8 +676,8 @@ def identify_masks(
     bar.close()
     adjustments = {**result.adjustments, "horizons": [*horizons, n], "blur_px": blurs}
     if observation.refine:
-        w0 = jax.tree_util.tree_map(lambda x: x[0], _restarted(stage, result.delta[0]).windows.observed)
-        total = np.asarray(w0.correction)
+        w0 = jax.tree_util.tree_map(lambda x: x[0], stage.windows)
+        total = np.asarray(observation.moved(w0.observed, own_unknowns(w0, jnp.asarray(result.delta[0]))).correction)
         for k, name in enumerate(REFINED):
             if name in observation.refine:
                 adjustments[f"{name}_correction"] = {
@@ -688,7 +698,7 @@ def _restarted(problem: Problem, delta: np.ndarray) -> Problem:
     observation = problem.observation
     assert isinstance(observation, PixelObservation) and isinstance(observed, MaskTargets)
     if observation.n_params:
-        params = jnp.asarray(delta)[problem.n_state - observation.n_params :]
+        params = own_unknowns(w0, jnp.asarray(delta))
         observed = jax.tree_util.tree_map(lambda x: x[None], observation.moved(w0.observed, params))
     windows = dataclasses.replace(problem.windows, qpos=qpos[None], qvel=qvel[None], observed=observed)
     return dataclasses.replace(problem, windows=windows)
