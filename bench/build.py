@@ -11,7 +11,7 @@ import jax
 import numpy as np
 
 from dano import build_dano
-from dano.demo import bunny_mesh
+from dano.assets import bunny_mesh
 from dano.fields import NeuralField, NeuralFieldConfig, distill, mesh_field
 
 

@@ -33,9 +33,9 @@ from scipy import ndimage
 
 jax.config.update("jax_enable_x64", True)
 
+from dano.assets import bunny_mesh  # noqa: E402
 from dano.build import build_dano  # noqa: E402
 from dano.contact.wrench import ContactParams  # noqa: E402
-from dano.demo import bunny_mesh  # noqa: E402
 from dano.fields import mesh_field  # noqa: E402
 from dano.io import save_dano  # noqa: E402
 from dano.math import quat_to_mat  # noqa: E402

@@ -24,9 +24,9 @@ import time
 import jax
 import numpy as np
 
+from dano.assets import bunny_mesh
 from dano.build import build_dano
 from dano.contact.wrench import ContactParams
-from dano.demo import bunny_mesh
 from dano.fields import BoxField, mesh_field
 from dano.math import quat_to_mat
 from dano.sim import DanoBody, Primitive, Scene

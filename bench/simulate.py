@@ -21,8 +21,8 @@ import mujoco
 import numpy as np
 
 from dano import build_dano
+from dano.assets import bunny_mesh
 from dano.baselines.mesh import convex_decomposition, mujoco_mesh_model
-from dano.demo import bunny_mesh
 from dano.fields import NeuralField, mesh_field
 from dano.sim import DanoBody, Scene
 from dano.sim.run import Simulation, shard_batch

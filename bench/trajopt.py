@@ -15,7 +15,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import dano  # noqa: E402
-from dano.demo import bunny_mesh  # noqa: E402
+from dano.assets import bunny_mesh  # noqa: E402
 from dano.fields import mesh_field  # noqa: E402
 from dano.trajopt import PushTask, push_problem, solve_push  # noqa: E402
 from dano.trajopt.push import ROBOT_STEP, default_options  # noqa: E402

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dano.demo import bunny_mesh
+from dano.assets import bunny_mesh
 from dano.fields import mesh_field
 from dano.math import quat_exp
 from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_video, render_views

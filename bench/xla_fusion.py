@@ -31,7 +31,8 @@ def chain(quat: str) -> mujoco.MjModel:
 
 
 def panda() -> mujoco.MjModel:
-    from dano.sim.scene import _robot_spec, panda
+    from dano.assets import panda
+    from dano.sim.robots import robot_spec as _robot_spec
 
     return _robot_spec(panda()).compile()
 
@@ -43,8 +44,8 @@ def kinematics(model: mujoco.MjModel):
 
 
 def bunny_step():
+    from dano.assets import bunny_mesh
     from dano.build import build_dano
-    from dano.demo import bunny_mesh
     from dano.fields import mesh_field
     from dano.sim.run import Simulation, at_rest
     from dano.sim.scene import DanoBody, Scene

@@ -69,7 +69,7 @@ def drops(shared: Path, substeps: int | None, integrator: str) -> None:
 
 def mesh_push() -> None:
     import dano
-    from dano.demo import bunny_mesh
+    from dano.assets import bunny_mesh
     from dano.fields import mesh_field
     from dano.sysid.experiments import mesh_push_recordings, push_recordings, push_scene
 

@@ -27,7 +27,7 @@ def dojo() -> Path:
 
 @pytest.fixture(scope="session")
 def bunny_mesh():
-    from dano.demo import bunny_mesh
+    from dano.assets import bunny_mesh
 
     return bunny_mesh()
 

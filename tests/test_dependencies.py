@@ -25,12 +25,12 @@ def test_a_missing_extra_is_named(monkeypatch, module):
 def test_the_panda_without_its_extra_names_it(monkeypatch):
     from importlib.metadata import PackageNotFoundError
 
-    from dano.sim import panda
+    from dano.assets import panda
 
     def missing(name):
         raise PackageNotFoundError(name)
 
-    monkeypatch.setattr("importlib.metadata.distribution", missing)
+    monkeypatch.setattr("dano.assets.distribution", missing)
     with pytest.raises(MissingExtraError, match=r'pip install "dano\[robots\]"'):
         panda()
 

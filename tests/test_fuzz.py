@@ -22,7 +22,8 @@ from dano.cli import main, parser
 from dano.errors import DanoError
 from dano.fields import SphereField
 from dano.sim import load_scene
-from dano.sim.scene import _SCHEMA, compile_scene
+from dano.sim.compile import compile_scene
+from dano.sim.toml import _SCHEMA
 from dano.sysid.data import read_tracks
 
 PARSER = parser  # the real one: each command-line example patches `dano.cli.parser` to a stub around it

@@ -14,8 +14,8 @@ from dano.fields import BoxField
 from dano.fields.base import TransformedField
 from dano.math import quat_to_mat
 from dano.sim import DanoBody, Scene
+from dano.sim.compile import compile_scene
 from dano.sim.run import Simulation, SimulationError, mechanical_energy
-from dano.sim.scene import compile_scene
 from dano.sim.step import rollout
 from helpers import partial_differences
 

@@ -15,8 +15,8 @@ from dano.cli import CACHE_VARIABLE, compilation_cache, main
 from dano.fields import BoxField
 from dano.sim import DanoBody, Primitive, Scene
 from dano.sim.run import Simulation, profile
-from dano.sim.scene import load_scene
 from dano.sim.step import rollout
+from dano.sim.toml import load_scene
 
 
 @pytest.fixture(scope="module")
@@ -97,7 +97,7 @@ def test_an_actuated_pusher_that_does_not_collide_is_integrated_as_mujoco_would(
     taken = run()
     np.testing.assert_allclose(np.asarray(skipped.qpos), np.asarray(taken.qpos), rtol=0, atol=1e-10)
     np.testing.assert_allclose(np.asarray(skipped.qvel), np.asarray(taken.qvel), rtol=0, atol=1e-8)
-    v = sim.world.prim_qvel[0]
+    v = sim.world.prims[0].qvel
     assert float(skipped.qvel[-1, v]) < 0.9 * 10.0 / 0.5 * 40 * 0.002  # the box held it back: contact acted
 
 

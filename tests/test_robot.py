@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 
 import dano
+from dano.assets import panda
 from dano.fields import BoxField
-from dano.sim import DanoBody, Robot, Scene, panda
+from dano.sim import DanoBody, Robot, Scene
 from dano.sim.run import Simulation
 
 
@@ -71,7 +72,8 @@ def test_mjcf_robot_with_primitive_links(cube, tmp_path):
 def test_a_servo_too_stiff_for_its_joint_is_refused(cube):
     # Without the armature, the hand's joint (M = 0.0067 kg m²) under kv = 30 at 0.5 ms steps has
     # kv h / M = 2.2: MuJoCo's explicit damping would ring up, so the scene is refused by name.
-    from dano.sim.scene import SceneError, compile_scene
+    from dano.sim.compile import compile_scene
+    from dano.sim.scene import SceneError
 
     body = DanoBody("cube", cube, pos=(0.5, 0, 0.1))
     scene = Scene(bodies=(body,), robot=panda(armature=None), integrator="explicit")

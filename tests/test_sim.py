@@ -248,7 +248,7 @@ def test_actuated_sphere_pushes_with_a_known_force(cube):
     ctrl = jnp.zeros((n, 3)).at[:, 0].set(6.0)  # 6 N along +x; friction holds the 1 kg cube at 2.9 N
     traj = sim.run(n, ctrl=ctrl)
     assert float(traj.qpos[-1, 0]) > 0.03
-    a = sim.world.prim_qpos[0]
+    a = sim.world.prims[0].qpos
     gap = float(traj.qpos[-1, 0]) - (-0.09 + float(traj.qpos[-1, a]))
     assert gap == pytest.approx(0.03 + 0.05, abs=0.005)  # the sphere stays in contact with the face
 

@@ -17,7 +17,8 @@ from dano.contact import ContactParams
 from dano.errors import InvalidValueError, NonFiniteFieldError
 from dano.fields import SphereField, as_field
 from dano.sim import DanoBody, Primitive, Robot, Scene, SceneError, load_scene
-from dano.sim.scene import compile_scene, pair_name, pairs
+from dano.sim.compile import compile_scene
+from dano.sim.world import pair_name, pairs
 
 SCENE = """
 [sim]

@@ -218,7 +218,7 @@ def _simulate(args: argparse.Namespace) -> None:
     print(f"simulating {n} frames of {scene.timestep} s ({scene.substeps} substeps) ...", file=sys.stderr)
     traj = sim.run(n)
     write_csv(args.output, traj, sim)
-    bodies = len(sim.world.names) + sum(a >= 0 for a in sim.world.prim_qpos)
+    bodies = len(sim.world.names) + sum(p.qpos >= 0 for p in sim.world.prims)
     print(f"wrote {args.output}: {n + 1} frames x {bodies} bodies")
     if args.video:
         from dano.sim.render import render_video
@@ -335,8 +335,8 @@ def _trajopt(args: argparse.Namespace) -> None:
 
 def _default_bunny():
     """The Stanford bunny as a 0.5 kg, 200-point DANO (the trajectory optimisation default)."""
+    from dano.assets import bunny_mesh
     from dano.build import build_dano
-    from dano.demo import bunny_mesh
     from dano.fields import mesh_field
 
     return build_dano(mesh_field(bunny_mesh(), resolution=64, progress=False), n_points=200, mass=0.5)

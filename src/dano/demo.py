@@ -15,27 +15,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from dano.assets import BUNNY_SCALE, WATER, bunny_mesh, bunny_path
 from dano.build import build_dano
-from dano.fields import load_mesh, mesh_field
+from dano.fields import mesh_field
 from dano.io import atomic_write, save_dano
 from dano.plotting import plot_dano
-
-BUNNY_SCALE = 0.003
-"""m per mesh unit: pymeshfix's bunny is ~50 units wide, a real Stanford bunny ~0.15 m."""
-
-WATER = 1000.0
-"""kg/m^3: the mesh field's peak density, so alpha = 1 gives the mass of a bunny of water."""
-
-
-def bunny_path() -> Path:
-    import pymeshfix
-
-    return Path(pymeshfix.__file__).parent / "examples" / "StanfordBunny.ply"
-
-
-def bunny_mesh() -> trimesh.Trimesh:
-    """The pymeshfix Stanford bunny, repaired to be watertight and scaled to metres."""
-    return load_mesh(bunny_path(), repair=True, scale=BUNNY_SCALE)
 
 
 def compare_with_mesh(dano, mesh: trimesh.Trimesh) -> dict:

@@ -52,7 +52,6 @@ from dano.contact.pairs import Frame
 from dano.contact.pairs import reaction as reaction_of
 from dano.contact.support import Support, dano_support, normal_terms, normal_velocity, overlap, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
-from dano.sim.scene import Params, World, pairs
 from dano.sim.step import (
     Partner,
     dano_bodies,
@@ -64,6 +63,7 @@ from dano.sim.step import (
     primitive_shape,
     scatter,
 )
+from dano.sim.world import Params, World, pairs
 
 PASSES = 3
 """Solves per step: the first without friction, each next one with friction at the normal forces
@@ -338,9 +338,9 @@ def implicit_step(
     mates = partners(world, d, mocap_vel, kin)
     # The unknowns V: 6 velocities per DANO, then per free or actuated primitive (solved jointly,
     # see above; an actuated one slides without turning, so its 3 angular velocities are held at 0).
-    free = tuple(k for k, mode in enumerate(world.prim_mode) if mode in ("free", "actuated"))
+    free = tuple(k for k, p in enumerate(world.prims) if p.moving)
     slot = {k: n + s for s, k in enumerate(free)}
-    prim_body = [world.prim_body[k] for k in free]
+    prim_body = [world.prims[k].body for k in free]
     frames_all = list(frames) + [primitive_frame(world, k, d) for k in free]
     masses = [b.mass for b in bodies] + [m.body_mass[b] for b in prim_body]
     inertia_body = [b.inertia for b in bodies] + [jnp.diag(m.body_inertia[b]) for b in prim_body]
@@ -353,8 +353,8 @@ def implicit_step(
     for i, f in enumerate(frames_all):
         ext = jnp.zeros(6) if external is None else external[body_ids[i]]
         k = free[i - n] if i >= n else -1
-        if k >= 0 and world.prim_mode[k] == "actuated":  # weight compensated, driven by its motors
-            c = world.prim_actuator[k]
+        if k >= 0 and world.prims[k].mode == "actuated":  # weight compensated, driven by its motors
+            c = world.prims[k].actuator
             force = d.ctrl[c : c + 3] * m.actuator_gear[c : c + 3, 0] + ext[:3]
             V_free.append(jnp.concatenate([f.v + h * force / masses[i], jnp.zeros(3)]))
             locked[6 * i + 3 : 6 * i + 6] = True
@@ -576,7 +576,7 @@ def implicit_step(
         d = d.replace(time=d.time + h, xfrc_applied=xfrc)
         qpos, qvel = d.qpos, d.qvel
         for s, k in enumerate(free):  # all actuated (`mujoco_moves`): V' is their velocity, Euler in position
-            a, v, lin = world.prim_qpos[k], world.prim_qvel[k], V_next[6 * (n + s) : 6 * (n + s) + 3]
+            a, v, lin = world.prims[k].qpos, world.prims[k].qvel, V_next[6 * (n + s) : 6 * (n + s) + 3]
             qpos = qpos.at[a : a + 3].add(h * lin)
             qvel = qvel.at[v : v + 3].set(lin)
 

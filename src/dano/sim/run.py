@@ -25,8 +25,10 @@ from dano.contact.pairs import occupancy, world_points
 from dano.errors import DanoError
 from dano.io import atomic_write
 from dano.math import quat_to_mat
-from dano.sim.scene import Params, Scene, World, compile_scene, pair_name, pairs
+from dano.sim.compile import compile_scene
+from dano.sim.scene import Scene
 from dano.sim.step import Trajectory, dano_bodies, dano_frames, partners, rollout
+from dano.sim.world import Params, World, pair_name, pairs
 
 
 class SimulationError(DanoError):
@@ -255,7 +257,7 @@ def check_trajectory(traj: Trajectory, scene: Scene, world: World) -> None:
 
 def driven(sim: Simulation) -> bool:
     """Whether anything feeds energy into the scene: a robot, actuators, actuated or mocap primitives."""
-    return bool(sim.model.nu or sim.model.nmocap or any(m == "actuated" for m in sim.world.prim_mode))
+    return bool(sim.model.nu or sim.model.nmocap or any(p.mode == "actuated" for p in sim.world.prims))
 
 
 def mechanical_energy(sim: Simulation, params, qpos: np.ndarray, qvel: np.ndarray):
@@ -354,12 +356,12 @@ def body_poses(traj: Trajectory, sim: Simulation) -> dict[str, np.ndarray]:
     qpos = np.asarray(traj.qpos)
     w = sim.world
     out = {name: qpos[:, a : a + 7] for name, a in zip(w.names, w.dano_qpos, strict=True)}
-    for name, a, mode, pos, quat in zip(w.prim_names, w.prim_qpos, w.prim_mode, w.prim_pos, w.prim_quat, strict=True):
-        if mode == "free":
-            out[name] = qpos[:, a : a + 7]
-        elif mode == "actuated":
-            fixed = np.broadcast_to(np.asarray(quat, dtype=float), (len(qpos), 4))
-            out[name] = np.concatenate([np.asarray(pos) + qpos[:, a : a + 3], fixed], axis=1)
+    for p in w.prims:
+        if p.mode == "free":
+            out[p.name] = qpos[:, p.qpos : p.qpos + 7]
+        elif p.mode == "actuated":
+            fixed = np.broadcast_to(np.asarray(p.quat, dtype=float), (len(qpos), 4))
+            out[p.name] = np.concatenate([np.asarray(p.pos) + qpos[:, p.qpos : p.qpos + 3], fixed], axis=1)
     return out
 
 

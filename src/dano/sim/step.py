@@ -25,7 +25,7 @@ from dano.contact.overlap import Primitive
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
 from dano.math import normalize, quat_to_mat
-from dano.sim.scene import LinkGeom, Params, World, pairs
+from dano.sim.world import LinkGeom, Params, World, pairs
 
 
 def free_frame(qpos: Array, qvel: Array, a: int, v: int) -> Frame:
@@ -40,31 +40,27 @@ def _static_frame(pos, quat) -> Frame:
 
 
 def primitive_frame(world: World, k: int, d: mjx.Data, mocap_vel: Array | None = None) -> Frame:
-    mode = world.prim_mode[k]
-    if mode == "free":
-        return free_frame(d.qpos, d.qvel, world.prim_qpos[k], world.prim_qvel[k])
-    if mode == "actuated":  # three slides along world x, y, z: no rotation
-        a, v = world.prim_qpos[k], world.prim_qvel[k]
-        z = jnp.zeros(3)
-        pos = jnp.asarray(world.prim_pos[k], dtype=float) + d.qpos[a : a + 3]
-        return Frame(pos, quat_to_mat(jnp.asarray(world.prim_quat[k], dtype=float)), d.qvel[v : v + 3], z)
-    if mode == "mocap":
-        i = world.prim_mocap[k]
-        z = jnp.zeros(3)
-        v = z if mocap_vel is None else mocap_vel[i]
-        return Frame(d.mocap_pos[i], quat_to_mat(d.mocap_quat[i]), v, z)
-    return _static_frame(world.prim_pos[k], world.prim_quat[k])
+    p = world.prims[k]
+    z = jnp.zeros(3)
+    if p.mode == "free":
+        return free_frame(d.qpos, d.qvel, p.qpos, p.qvel)
+    if p.mode == "actuated":  # three slides along world x, y, z: no rotation
+        pos = jnp.asarray(p.pos, dtype=float) + d.qpos[p.qpos : p.qpos + 3]
+        return Frame(pos, quat_to_mat(jnp.asarray(p.quat, dtype=float)), d.qvel[p.qvel : p.qvel + 3], z)
+    if p.mode == "mocap":
+        v = z if mocap_vel is None else mocap_vel[p.mocap]
+        return Frame(d.mocap_pos[p.mocap], quat_to_mat(d.mocap_quat[p.mocap]), v, z)
+    return _static_frame(p.pos, p.quat)
 
 
 def primitive_shape(world: World, k: int, f: Frame):
-    size = world.prim_size[k]
-    kind = world.prim_kind[k]
-    if kind == "sphere":
-        return Sphere(f.x, jnp.asarray(size[0]))
-    if kind == "capsule":
-        axis = f.R[:, 2] * size[1]
-        return Capsule(f.x - axis, f.x + axis, jnp.asarray(size[0]))
-    return Box(f.x, f.R, jnp.asarray(size, dtype=float))
+    p = world.prims[k]
+    if p.kind == "sphere":
+        return Sphere(f.x, jnp.asarray(p.size[0]))
+    if p.kind == "capsule":
+        axis = f.R[:, 2] * p.size[1]
+        return Capsule(f.x - axis, f.x + axis, jnp.asarray(p.size[0]))
+    return Box(f.x, f.R, jnp.asarray(p.size, dtype=float))
 
 
 def link_frame(link: LinkGeom, kin: mjx.Data) -> Frame:
@@ -135,9 +131,8 @@ def _ground(world: World, k: int, d, kin, mocap_vel) -> Partner:
 
 def _primitive(world: World, k: int, d, kin, mocap_vel) -> Partner:
     b = primitive_frame(world, k, d, mocap_vel)
-    moving = world.prim_mode[k] in ("free", "actuated")
-    body = world.prim_body[k] if moving else -1
-    return Partner(b, primitive_shape(world, k, b), body, -1, 1.0 / world.prim_mass[k], 0.0)
+    p = world.prims[k]
+    return Partner(b, primitive_shape(world, k, b), p.body if p.moving else -1, -1, 1.0 / p.mass, 0.0)
 
 
 def _link(world: World, k: int, d, kin, mocap_vel) -> Partner:

@@ -19,8 +19,9 @@ import trimesh
 
 from dano._mjx import mjx
 from dano.contact import ContactParams
+from dano.sim.compile import compile_scene
 from dano.sim.run import Simulation, at_interval, at_rest, body_poses, compiler_options
-from dano.sim.scene import DanoBody, Primitive, Scene, compile_scene
+from dano.sim.scene import DanoBody, Primitive, Scene
 from dano.sim.step import rollout
 from dano.sysid.data import Track
 from dano.sysid.problem import Recording, with_values
@@ -103,7 +104,7 @@ def push_recordings(
     model, world, params, qpos0, qvel0 = compile_scene(scene)
     params = with_values(params, tuple(truth), jnp.asarray(list(truth.values()), dtype=float))
     m = mjx.put_model(model)
-    a = world.prim_qpos[0]
+    a = world.prims[0].qpos
     home = np.asarray(scene.primitives[0].pos)
     starts = np.tile(qpos0, (n_pushes, 1))
     starts[:, a : a + 3] = plan.starts - home

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dano.sim.scene import Scene, load_scene
+from dano.sim.scene import Scene
+from dano.sim.toml import load_scene
 from dano.sysid.data import MIN_FRAMES, read_tracks
 from dano.sysid.frames import (
     RestingPose,

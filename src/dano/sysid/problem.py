@@ -30,9 +30,11 @@ from dano._mjx import mjx
 from dano.contact.wrench import ContactParams
 from dano.errors import DanoError
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul
+from dano.sim.compile import compile_scene
 from dano.sim.run import at_interval
-from dano.sim.scene import DanoBody, Params, Primitive, Scene, World, compile_scene, pairs
+from dano.sim.scene import DanoBody, Primitive, Scene
 from dano.sim.step import rollout
+from dano.sim.world import Params, World, pairs
 from dano.sysid.data import Track, estimate_velocity
 
 
@@ -401,12 +403,10 @@ def _observed(scene: Scene, world: World, recordings, rotation_length, weight: f
             out.append(Observed(name, world.dano_qpos[i], world.dano_qvel[i], "free", (0.0, 0.0, 0.0), length, weight))
         elif kind in ("free", "actuated"):
             assert isinstance(body, Primitive)
-            k = world.prim_names.index(body.name)
+            g = next(p for p in world.prims if p.name == body.name)
             length = max(body.size) if rotation_length is None else float(rotation_length)
             moving = "free" if kind == "free" else "slide"
-            out.append(
-                Observed(name, world.prim_qpos[k], world.prim_qvel[k], moving, world.prim_pos[k], length, weight)
-            )
+            out.append(Observed(name, g.qpos, g.qvel, moving, g.pos, length, weight))
         elif kind == "static":
             raise SysidError(f"body {name!r} is static in the scene; it cannot be observed moving")
     if not out:
@@ -432,7 +432,7 @@ def _windows(scene, world, params, model, recordings, observed, qpos0, qvel0, W,
     settling changed ({"window", "body", "moved_m", "normal_speed_dropped_m_s"} per settled body)."""
     mocap_names = [p.name for p in scene.primitives if p.mode == "mocap"]
     mocap_home = np.array([p.pos for p in scene.primitives if p.mode == "mocap"], dtype=float).reshape(-1, 3)
-    moving = len(world.dano_qpos) + sum(m in ("free", "actuated") for m in world.prim_mode)
+    moving = len(world.dano_qpos) + sum(p.moving for p in world.prims)
     rows, report = [], []
     for r in recordings:
         T = r.n_frames

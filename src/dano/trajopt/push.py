@@ -23,8 +23,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dano.assets import panda
 from dano.sim.run import Simulation, at_interval, compiler_options
-from dano.sim.scene import Scene, panda
+from dano.sim.scene import Scene
 from dano.sim.step import mjx_kinematics, scaled_model, step
 from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, compiled, solve
 from dano.types import DANO
@@ -203,7 +204,7 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         return jnp.concatenate([d.qpos, d.qvel])
 
     if robot == "sphere":
-        p = world.prim_qpos[0]
+        p = world.prims[0].qpos
         home = jnp.asarray(sim.scene.primitives[0].pos)
         radius = float(sim.scene.primitives[0].size[0])
         vp = _dof(sim, p)

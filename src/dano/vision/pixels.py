@@ -733,7 +733,7 @@ def identify_mask_files(
         SysidError: an option that does not apply to masks, no fps; MaskError, VisionDataError: as
             `mask_problem`, `load_masks`, `load_camera`.
     """
-    from dano.sim.scene import load_scene
+    from dano.sim.toml import load_scene
     from dano.sysid.data import TrackFileError, read_tracks
     from dano.vision.data import load_camera, load_masks
 
