@@ -1,7 +1,7 @@
 """Torques to pixels: friction from masks, two-stage (track, then pose sysid) against end to end.
 
 Each case simulates an object sliding and turning on a table at a known friction (the DANO in
-`dano.sim`), films it with MuJoCo (`render_video`, 128 x 96 px, from the object's mesh) and
+`dano.sim`), films it with MuJoCo (`render_mesh_video`, 128 x 96 px, from the object's mesh) and
 identifies μ from the masks two ways, both from the same files and the same initial guess (μ 0.25):
 
 - two-stage: `dano track` (every frame, the tracker's first-pose guess) writes a pose CSV, then
@@ -43,7 +43,7 @@ from dano.sim import DanoBody, Scene  # noqa: E402
 from dano.sim.run import Simulation, body_poses  # noqa: E402
 from dano.sysid.data import Track, write_track  # noqa: E402
 from dano.sysid.pipeline import SysidConfig, identify_files  # noqa: E402
-from dano.vision import camera_from_fov, load_masks, look_at, render_video  # noqa: E402
+from dano.vision import camera_from_fov, load_masks, look_at, render_mesh_video  # noqa: E402
 from dano.vision.pixels import identify_mask_files  # noqa: E402
 from dano.vision.track import track  # noqa: E402
 
@@ -73,7 +73,7 @@ def film(mesh: trimesh.Trimesh, fps: float, folder: Path):
     rot = np.asarray(quat_to_mat(poses[:, 3:]))
     origin = poses[:, :3] - rot @ com
     camera = camera_from_fov(128, 96, np.radians(55.0), look_at([0.1, -0.28, 0.3], [0.1, 0.03, 0.0]))
-    video = render_video(mesh, np.concatenate([origin, poses[:, 3:]], axis=1), camera, folder / "video",
+    video = render_mesh_video(mesh, np.concatenate([origin, poses[:, 3:]], axis=1), camera, folder / "video",
                          fps=fps, progress=False)  # fmt: skip
     save_dano(folder / "object.dano.npz", obj)
     (folder / "scene.toml").write_text(

@@ -21,8 +21,9 @@ import optimistix as optx
 
 from dano import build_dano
 from dano.fields import BoxField
+from dano.scenarios import slide_scene
 from dano.sysid import Recording, identify, make_problem, residuals
-from dano.sysid.experiments import slide_scene, slide_track
+from dano.sysid.experiments import slide_track
 
 MU = 0.5
 

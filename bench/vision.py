@@ -5,7 +5,7 @@
    (on 200 000 uniform points of the box). Prints steps, seconds (training only) and IoU, and the
    seconds to reach `--iou`. Both models ("grid" and "mlp") are timed per step side by side.
 2. Track: a 30-frame 128 x 96 video of the bunny sliding 15 cm and turning 60 degrees
-   (`render_video`), tracked from its masks with the first pose given, in a window at full
+   (`render_mesh_video`), tracked from its masks with the first pose given, in a window at full
    resolution and downsampled to 32 px; prints seconds per frame and the mean position (fraction
    of the bunny's size) and orientation errors.
 
@@ -24,7 +24,7 @@ import numpy as np
 from dano.assets import bunny_mesh
 from dano.fields import mesh_field
 from dano.math import quat_exp
-from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_video, render_views
+from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_mesh_video, render_views
 from dano.vision.fit import FitConfig, fit_field, solidify
 from dano.vision.track import TrackConfig, track
 
@@ -66,7 +66,7 @@ def track_bench(mesh, folder: Path) -> None:
     yaw = np.radians(60.0) * t
     quat = np.asarray(quat_exp(jnp.asarray(np.stack([0 * yaw, 0 * yaw, yaw], axis=1))))
     camera = camera_from_fov(128, 96, np.radians(50.0), look_at([0.07, -0.55, 0.3], [0.07, 0.0, 0.05]))
-    render_video(mesh, np.concatenate([pos, quat], axis=1), camera, folder / "video", floor=True, progress=False)
+    render_mesh_video(mesh, np.concatenate([pos, quat], axis=1), camera, folder / "video", floor=True, progress=False)
     masks = load_masks(folder / "video" / "masks", n, (96, 128))
     field = mesh_field(mesh, resolution=128, progress=False)
     size = float(np.linalg.norm(np.ptp(mesh.vertices, axis=0)))

@@ -3,7 +3,7 @@
 1. `dano build`: a 9 x 6 x 3 cm bar of soap, 100 g. A scene TOML launches it along a table at
    1.6 m/s, spinning at 2 rad/s, with friction 0.5; `dano simulate` writes its motion at 120 Hz.
 2. The video: 33 frames (after the first 12, while it slides) rendered with the existing video maker,
-   `dano.vision.render_video` (128 x 96 px, a camera looking down at the table from 30 cm; the only step in
+   `dano.vision.render_mesh_video` (128 x 96 px, a camera looking down at the table from 30 cm; the only step in
    Python: a synthetic video has no command).
 3. `dano track`: the poses from the masks, the first pose given.
 4. `dano sysid`: the friction from the tracked poses, the initial state fitted, profile interval.
@@ -51,14 +51,14 @@ def main() -> None:
 
     import trimesh
 
-    from dano.vision import camera_from_fov, look_at, render_video
+    from dano.vision import camera_from_fov, look_at, render_mesh_video
 
     with open(out / "truth.csv") as f:
         poses = np.array([[float(v) for v in row[2:]] for row in list(csv.reader(f))[1:]])[LEAD : LEAD + FRAMES]
     camera = camera_from_fov(128, 96, np.radians(45.0), look_at([0.2, -0.12, 0.3], [0.2, 0.035, 0.0]))
-    print(f"rendering {FRAMES} frames of 128 x 96 px (dano.vision.render_video)", flush=True)
+    print(f"rendering {FRAMES} frames of 128 x 96 px (dano.vision.render_mesh_video)", flush=True)
     video = out / "video"
-    render_video(trimesh.creation.box(extents=SIZE), poses, camera, video, fps=FPS, floor=True, overwrite=True)
+    render_mesh_video(trimesh.creation.box(extents=SIZE), poses, camera, video, fps=FPS, floor=True, overwrite=True)
     init = ",".join(f"{v:.6g}" for v in poses[0])
     run(
         "track", str(video / "frames"), "--field", box, "--camera", str(video / "camera.json"),

@@ -31,7 +31,7 @@ DEFAULT_SHARED = Path(__file__).resolve().parents[1] / ".." / "shared"
 
 
 def reference(shared: Path, first: int, frames: int, window: int, substeps: int | None, integrator: str) -> None:
-    from dano.reference import reference_drop_scene
+    from dano.scenarios import reference_drop_scene
 
     dojo = shared / "data" / "dojo"
     if substeps is None:
@@ -52,7 +52,7 @@ def reference(shared: Path, first: int, frames: int, window: int, substeps: int 
 
 
 def drops(shared: Path, substeps: int | None, integrator: str) -> None:
-    from dano.reference import reference_drop_scene
+    from dano.scenarios import reference_drop_scene
     from dano.sim.run import Simulation
 
     dojo = shared / "data" / "dojo"
@@ -70,8 +70,10 @@ def drops(shared: Path, substeps: int | None, integrator: str) -> None:
 def mesh_push() -> None:
     import dano
     from dano.assets import bunny_mesh
+    from dano.baselines.pushes import mesh_push_recordings
     from dano.fields import mesh_field
-    from dano.sysid.experiments import mesh_push_recordings, push_recordings, push_scene
+    from dano.scenarios import push_scene
+    from dano.sysid.experiments import push_recordings
 
     mesh = bunny_mesh()
     bunny = dano.build_dano(mesh_field(mesh, resolution=80, progress=False), n_points=800, mass=0.5)
@@ -94,7 +96,8 @@ def mesh_push() -> None:
 def soap(shared: Path, seeds: int) -> None:
     from dano.build import scale_lengths
     from dano.reference import load_reference
-    from dano.sysid.experiments import slide_scene, slide_track
+    from dano.scenarios import slide_scene
+    from dano.sysid.experiments import slide_track
 
     soap = load_reference(shared / "data" / "dojo" / "colliders" / "bluesoap_collider.npz")
     soap = scale_lengths(soap, 0.09 / float(np.max(np.ptp(np.asarray(soap.body_points), axis=0))))

@@ -103,3 +103,59 @@ def test_warnings_print_as_one_line_and_leave_the_filters_alone(monkeypatch, cap
         assert main(["info", str(tmp_path / "any.dano.npz")]) == 0
         assert warnings.showwarning is before
     assert capsys.readouterr().err == "dano info: UnitsWarning: the DANO 'soap' is 90 m long\n"
+
+
+def test_build_json_is_what_info_reads_back(tmp_path, capsys):
+    out = tmp_path / "ball.dano.npz"
+    assert main(["build", "sphere:r=0.05", "-o", str(out), "--points", "300", "--mass", "0.3", "--json"]) == 0
+    built = json.loads(capsys.readouterr().out)
+    assert main(["info", str(out), "--json"]) == 0
+    assert built == {"output": str(out), **json.loads(capsys.readouterr().out)}
+    assert built["mass"] == pytest.approx(0.3) and built["n_points"] == 300
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "dest", "value"),
+    [
+        (["sysid", "--scene", "s.toml"], ["sysid", "s.toml"], "scene", "s.toml"),
+        (["sysid", "s.toml", "--max-steps", "7"], ["sysid", "s.toml", "--max-iterations", "7"], "max_steps", 7),
+        (["sysid", "s.toml", "--window", "5"], ["sysid", "s.toml", "--window-frames", "5"], "window", 5),
+        (["render-views", "m.ply", "-o", "d", "--resolution", "32"],
+         ["render-views", "m.ply", "-o", "d", "--image-size", "32"], "resolution", 32),
+        (["track", "v", "--field", "f", "--camera", "c", "--masks", "m", "-o", "t.csv", "--iterations", "9"],
+         ["track", "v", "--field", "f", "--camera", "c", "--masks", "m", "-o", "t.csv", "--steps", "9"],
+         "iterations", 9),
+        (["demo", "--out", "x"], ["demo", "-o", "x"], "out", "x"),
+        (["trajopt", "push", "--goal", "0.1", "-0.05"], ["trajopt", "push", "--goal", "0.1,-0.05"],
+         "goal", (0.1, -0.05)),
+    ],
+)  # fmt: skip
+def test_one_word_per_concept_and_the_old_spellings_still_parse_with_a_note(monkeypatch, capsys, old, new, dest, value):
+    """Renamed options (`dano.cli.RENAMED`) parse to the same value as their new names, and the old
+    spelling prints a one-line note naming the new one."""
+    from dano import cli
+
+    parsed = []
+    real = cli.parser
+
+    def stub():
+        p = real()
+        sub = next(a for a in p._actions if isinstance(a, cli.argparse._SubParsersAction))
+        for action in sub.choices.values():
+            action.set_defaults(run=parsed.append)
+        return p
+
+    monkeypatch.setattr(cli, "parser", stub)
+    fit = ["--fit", "friction"] if old[0] == "sysid" else []
+    for argv in (new, old):
+        assert main(argv + fit) == 0
+    resolve = {
+        "scene": lambda a: a.scene or a.scene_option,
+        "goal": lambda a: cli._vector(a.goal, 2, "--goal", "X,Y"),
+    }.get(dest, lambda a: getattr(a, dest))
+    assert resolve(parsed[0]) == resolve(parsed[1]) == value
+    err = capsys.readouterr().err
+    if dest == "goal":  # a vector may be written X,Y or X Y: neither is old
+        assert err == ""
+    else:
+        assert err.count("\n") == 1 and f"{old[-2]} is now" in err, err

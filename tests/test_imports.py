@@ -84,3 +84,16 @@ def test_the_package_is_marked_typed():
     from importlib.resources import files
 
     assert (files("dano") / "py.typed").is_file()
+
+
+@pytest.mark.parametrize(
+    ("module", "old", "new"),
+    [("dano.sim", "panda", "dano.assets.panda"), ("dano.vision", "render_video", "dano.vision.render_mesh_video")],
+)
+def test_a_moved_name_still_resolves_for_one_release_with_a_deprecation_warning(module, old, new):
+    import importlib
+
+    owner, _, name = new.rpartition(".")
+    with pytest.warns(DeprecationWarning, match=new):
+        alias = getattr(importlib.import_module(module), old)
+    assert alias is getattr(importlib.import_module(owner), name)

@@ -131,8 +131,9 @@ def test_a_robust_loss_shrugs_off_tracking_failures():
     0.517, Cauchy 0.509; all three 0.507 on the clean track); the Cauchy loss stays within 3 %."""
     import dano
     from dano.fields import BoxField
+    from dano.scenarios import slide_scene
     from dano.sysid import Recording, identify, make_problem
-    from dano.sysid.experiments import slide_scene, slide_track
+    from dano.sysid.experiments import slide_track
 
     bar = dano.build_dano(BoxField(size=(0.09, 0.06, 0.03)), mass=0.1, n_points=600)
     scene = slide_scene(bar, friction=0.5)

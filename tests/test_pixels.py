@@ -211,7 +211,7 @@ def _filmed_slide(folder, mu: float, frames: int, fps: float):
     from dano.math import quat_to_mat
     from dano.sim.run import Simulation, body_poses
     from dano.sysid.data import write_track
-    from dano.vision import render_video
+    from dano.vision import render_mesh_video
 
     scene = _scene(mu, fps)
     sim = Simulation.from_scene(scene)
@@ -219,7 +219,7 @@ def _filmed_slide(folder, mu: float, frames: int, fps: float):
     obj = scene.bodies[0].dano
     origin = poses[:, :3] - np.asarray(quat_to_mat(jnp.asarray(poses[:, 3:]))) @ np.asarray(obj.com)
     camera = camera_from_fov(64, 48, np.radians(50.0), look_at([0.07, -0.2, 0.22], [0.07, 0.0, 0.0]))
-    video = render_video(trimesh.creation.box(SIZE), np.concatenate([origin, poses[:, 3:]], axis=1), camera,
+    video = render_mesh_video(trimesh.creation.box(SIZE), np.concatenate([origin, poses[:, 3:]], axis=1), camera,
                          folder / "video", fps=fps, progress=False)  # fmt: skip
     save_dano(folder / "box.dano.npz", obj)
     write_track(folder / "start.csv", Track(t=np.arange(4) / fps, pos=poses[:4, :3], quat=poses[:4, 3:]))
@@ -240,7 +240,7 @@ def test_dano_sysid_identifies_friction_from_a_filmed_slide(tmp_path, capsys):
 
     video = _filmed_slide(tmp_path, 0.5, frames=12, fps=60.0)
     plot = tmp_path / "fit.png"
-    args = ["sysid", "--scene", str(tmp_path / "scene.toml"), "--masks", str(video / "masks"), "--camera",
+    args = ["sysid", str(tmp_path / "scene.toml"), "--masks", str(video / "masks"), "--camera",
             str(video / "camera.json"), "--fps", "60", "--fit", "friction", "--traj", str(tmp_path / "start.csv"),
             "--interval", "gauss-newton", "--json", "--plot", str(plot)]  # fmt: skip
     assert main(args) == 0
@@ -254,14 +254,14 @@ def test_dano_sysid_identifies_friction_from_a_filmed_slide(tmp_path, capsys):
 def test_dano_sysid_refuses_mask_options_that_do_not_fit(tmp_path, capsys):
     from dano.cli import main
 
-    base = ["sysid", "--scene", str(tmp_path / "scene.toml"), "--fit", "friction"]
+    base = ["sysid", str(tmp_path / "scene.toml"), "--fit", "friction"]
     assert main([*base, "--masks", str(tmp_path)]) == 2
     assert "--camera CAMERA.json" in capsys.readouterr().err
     assert main([*base, "--traj", "a.csv", "--camera", "c.json"]) == 2
     assert "go with --masks" in capsys.readouterr().err
     assert main([*base, "--traj", "a.csv", "--refine-frames", "camera"]) == 2
     assert "go with --masks" in capsys.readouterr().err
-    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--window", "5", "--fps", "30"]) == 2
+    assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--window-frames", "5", "--fps", "30"]) == 2
     assert "--window applies to pose files" in capsys.readouterr().err
     assert main([*base, "--masks", str(tmp_path), "--camera", "c.json", "--init-from", "track"]) == 2
     assert "needs the track" in capsys.readouterr().err

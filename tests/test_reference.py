@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from dano.build import scale_lengths
-from dano.reference import load_reference, reference_drop_scene
+from dano.reference import load_reference
+from dano.scenarios import reference_drop_scene, slide_scene
 from dano.sim.run import Simulation
 from dano.sysid import Recording, identify, make_problem, read_tracks
-from dano.sysid.experiments import slide_scene, slide_track
+from dano.sysid.experiments import slide_track
 
 
 @pytest.mark.parametrize("mu", [0.3, 0.7])
@@ -102,8 +103,8 @@ def test_the_command_line_alone_identifies_the_reference_friction_as_python_does
     (tmp_path / "scene.toml").write_text(REFERENCE_SCENE)
     capsys.readouterr()
     code = main([
-        "sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(csv), "--fps", "500", "--frames", "400:601",
-        "--window", "25", "--fit", "friction", "--init", "friction=0.5", "--settle", "0", "--interval", "gauss-newton",
+        "sysid", str(tmp_path / "scene.toml"), "--traj", str(csv), "--fps", "500", "--frames", "400:601",
+        "--window-frames", "25", "--fit", "friction", "--init", "friction=0.5", "--settle", "0", "--interval", "gauss-newton",
         "--json",
     ])  # fmt: skip
     assert code == 0

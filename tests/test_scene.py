@@ -1,4 +1,5 @@
 import csv
+import json
 
 import numpy as np
 import pytest
@@ -131,3 +132,13 @@ def test_danos_without_a_field_cannot_touch_each_other(dojo):
     bodies = (DanoBody("a", ref), DanoBody("b", ref, pos=(2.0, 0, 0)))
     with pytest.raises(SceneError, match="density grid"):
         Simulation.from_scene(Scene(bodies=bodies))
+
+
+def test_simulate_json_is_one_object_that_matches_the_csv(ball_dir, tmp_path, capsys):
+    out = tmp_path / "traj.csv"
+    assert main(["simulate", str(ball_dir / "scene.toml"), "-o", str(out), "--steps", "10", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)  # stdout holds the object alone
+    with out.open() as f:
+        rows = list(csv.reader(f))
+    assert summary == {"output": str(out), "frames": 11, "bodies": 1, "video": None}
+    assert len(rows) - 1 == summary["frames"] * summary["bodies"]

@@ -11,17 +11,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import dano
+from dano.baselines.pushes import mesh_push_recordings
 from dano.cli import main
 from dano.fields import BoxField
+from dano.results import Result, SolverError
+from dano.scenarios import at_rate, push_scene, slide_scene
 from dano.sysid import Recording, Track, identify, make_problem, write_track
-from dano.sysid.experiments import (
-    at_rate,
-    mesh_push_recordings,
-    push_recordings,
-    push_scene,
-    slide_scene,
-    slide_track,
-)
+from dano.sysid.experiments import push_recordings, slide_track
 from dano.sysid.pipeline import SysidConfig, identify_files
 from dano.sysid.problem import window_residuals
 from helpers import central_difference
@@ -69,6 +65,10 @@ def test_slide_recovers_friction_exactly_from_noise_free_data(slide):
     assert result.converged
     assert abs(result.params["sliding_friction"] - MU) < 1e-3 * MU  # same simulator: 0.1 %
     assert result.loss[-1] < 1e-3 * result.loss[0]
+    cut = identify(problem, init={"sliding_friction": 0.2}, max_steps=1, progress=False)  # the same, one step
+    assert cut.result is Result.max_steps_reached and not cut.converged and cut.message == "iteration limit"
+    with pytest.raises(SolverError, match="^identification did not converge: iteration limit reached"):
+        identify(problem, init={"sliding_friction": 0.2}, max_steps=1, progress=False, throw=True)
 
 
 def test_slide_with_1mm_noise_is_within_its_standard_error(slide, bar):
@@ -127,7 +127,7 @@ def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path,
     for name, tr in (("a", track), ("b", other)):
         write_track(tmp_path / f"{name}.csv", _camera_view(tr, R, np.array([0.1, -0.3, 0.8]), 100.0))
     code = main([
-        "sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "a.csv"),
+        "sysid", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "a.csv"),
         "--traj", str(tmp_path / "b.csv"), "--fit", "friction", "--scale", "0.01", "--gravity", "fit",
         "--fit-initial", "velocity", "--json", "--plot", str(tmp_path / "fit.png"),
     ])  # fmt: skip
@@ -160,7 +160,7 @@ def test_cli_sysid_names_a_bad_trajectory_file(tmp_path, capsys, bar):
     (tmp_path / "scene.toml").write_text('[[body]]\nname = "soap"\ndano = "bar.dano.npz"\n')
     rows = ["t,x,y,z,qw,qx,qy,qz", "0,0,0,0,1,0,0,0", "0.01,0,0,nan,1,0,0,0", "0.02,0,0,0,1,0,0,0"]
     (tmp_path / "bad.csv").write_text("\n".join(rows) + "\n")
-    code = main(["sysid", "--scene", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "bad.csv"), "--fit", "mu"])
+    code = main(["sysid", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "bad.csv"), "--fit", "mu"])
     assert code == 2
     err = capsys.readouterr().err
     assert "bad.csv" in err and "line 3" in err and "NaN" in err

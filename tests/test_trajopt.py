@@ -8,6 +8,7 @@ import pytest
 import dano
 from dano.cli import main
 from dano.fields import BoxField
+from dano.results import Result, SolverError
 from dano.trajopt import (
     OptimalControlProblem,
     Options,
@@ -96,6 +97,9 @@ def test_infeasible_goal_is_reported_not_raised(lq):
     assert sol.message.startswith("did not converge")
     assert sol.max_violation > 1.0
     assert np.all(np.isfinite(sol.states)) and np.all(np.isfinite(sol.controls))
+    assert sol.result is not Result.successful
+    with pytest.raises(SolverError, match=r"^iLQR did not converge: .*constraint violation"):
+        solve(impossible, x0, jnp.zeros((T, M)), Options(max_iterations=60), throw=True)
 
 
 def test_wrong_control_shape_is_a_named_error(lq):

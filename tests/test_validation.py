@@ -204,7 +204,7 @@ def test_a_scene_with_no_bodies_is_refused(folder):
         (["build", "sphere:r=0.05", "-o", "O.dano.npz", "--points", "0"], "argument --points: must be a whole number"),
         (["build", "sphere:r=0.05", "-o", "O.dano.npz", "--scale", "-2"], "argument --scale: must be > 0, got -2"),
         (
-            ["sysid", "--scene", "S", "--traj", "T", "--fit", "friction", "--sigma", "0"],
+            ["sysid", "S", "--traj", "T", "--fit", "friction", "--sigma", "0"],
             "argument --sigma: must be > 0",
         ),
         (["simulate", "S", "-o", "O.csv", "--video", "O.avi"], "argument --video: 'O.avi' must end with .mp4 or .gif"),
@@ -221,7 +221,7 @@ def test_bad_command_line_values_are_one_line_usage_errors(tmp_path, monkeypatch
 
 
 def test_negative_comma_values_need_no_equals_sign(capsys):
-    err = _one_line_exit_2(capsys, ["sysid", "--scene", "S", "--traj", "T", "--fit", "friction",
+    err = _one_line_exit_2(capsys, ["sysid", "S", "--traj", "T", "--fit", "friction",
                                     "--gravity", "-0.27,-0.27,-0.92", "--sigma", "-1"])  # fmt: skip
     assert "argument --sigma" in err  # --gravity itself parsed
 

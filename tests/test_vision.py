@@ -9,7 +9,7 @@ import trimesh
 import dano
 from dano.fields import GridField, mesh_field
 from dano.math import quat_exp
-from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_video, render_views
+from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_mesh_video, render_views
 from dano.vision.fit import FitConfig, FitError, fit_field, solidify
 from dano.vision.track import (
     TrackConfig,
@@ -96,7 +96,7 @@ def box_video(tmp_path_factory):
     pos, quat = _slide_and_turn(BOX, 8)
     camera = camera_from_fov(64, 48, np.radians(50.0), look_at([0.05, -0.2, 0.12], [0.05, 0.0, 0.02]))
     folder = tmp_path_factory.mktemp("box") / "video"
-    render_video(BOX, np.concatenate([pos, quat], axis=1), camera, folder, floor=True, progress=False)
+    render_mesh_video(BOX, np.concatenate([pos, quat], axis=1), camera, folder, floor=True, progress=False)
     return pos, quat, camera, load_masks(folder / "masks", 8, (48, 64))
 
 

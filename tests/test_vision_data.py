@@ -1,4 +1,4 @@
-"""Cameras, NeRF-style datasets, MuJoCo-rendered ground truth, videos and masks (`dano.vision.data`)."""
+"""Cameras, NeRF-style datasets, MuJoCo-rendered ground truth, videos and masks (`dano.vision`)."""
 
 import json
 import math
@@ -11,9 +11,9 @@ import trimesh
 from scipy.spatial import ConvexHull
 from scipy.spatial.transform import Rotation
 
+from dano import vision as vd
 from dano.sysid import read_tracks
-from dano.vision import data as vd
-from dano.vision.data import VisionDataError
+from dano.vision import VisionDataError
 
 RES = 32
 N_VIEWS = 4
@@ -226,7 +226,7 @@ def test_render_video_round_trip(tmp_path):
     mesh.apply_translation((0.01, 0.0, 0.0))
     camera = vd.camera_from_fov(48, 32, math.radians(50.0), vd.look_at((0.25, -0.2, 0.2), (0.0, 0.0, 0.03)))
     poses = _poses(4)
-    out = vd.render_video(mesh, poses, camera, tmp_path / "video", background=GREY, fps=25.0, progress=False)
+    out = vd.render_mesh_video(mesh, poses, camera, tmp_path / "video", background=GREY, fps=25.0, progress=False)
     frames, files = vd.load_frames(out / "frames")
     assert frames.shape == (4, 32, 48, 3) and [f.split("/")[-1] for f in files] == [f"{k:06d}.png" for k in range(4)]
     masks = vd.load_masks(out / "masks", 4, (32, 48))
@@ -250,8 +250,8 @@ def test_render_video_floor_is_not_in_the_mask(tmp_path):
     mesh = trimesh.creation.box((0.04, 0.04, 0.04))
     camera = vd.camera_from_fov(32, 32, math.radians(60.0), vd.look_at((0.2, -0.15, 0.15), (0.0, 0.0, 0.02)))
     poses = np.array([[0.0, 0.0, 0.02, 1.0, 0.0, 0.0, 0.0]] * 3)
-    bare = vd.render_video(mesh, poses, camera, tmp_path / "bare", progress=False)
-    floor = vd.render_video(mesh, poses, camera, tmp_path / "floor", floor=True, progress=False)
+    bare = vd.render_mesh_video(mesh, poses, camera, tmp_path / "bare", progress=False)
+    floor = vd.render_mesh_video(mesh, poses, camera, tmp_path / "floor", floor=True, progress=False)
     np.testing.assert_array_equal(
         vd.load_masks(bare / "masks", 3, (32, 32)), vd.load_masks(floor / "masks", 3, (32, 32))
     )
@@ -262,7 +262,7 @@ def test_render_video_floor_is_not_in_the_mask(tmp_path):
 def test_render_video_rejects_other_intrinsics_and_leaves_nothing(tmp_path):
     camera = _camera(0, width=32, height=32)
     with pytest.raises(VisionDataError, match="square pixels"):
-        vd.render_video(trimesh.creation.box((0.1, 0.1, 0.1)), _poses(3), camera, tmp_path / "out", progress=False)
+        vd.render_mesh_video(trimesh.creation.box((0.1, 0.1, 0.1)), _poses(3), camera, tmp_path / "out", progress=False)
     assert list(tmp_path.iterdir()) == []  # no half-written folder, no temporary one
 
 

@@ -104,6 +104,25 @@ def _numbers(n: int, form: str, quaternion_at: int | None = None):
     return check
 
 
+def _vector_part(text: str) -> tuple[float, ...]:
+    """One token of a vector written `X,Y` (or, the older way, `X Y`): its comma-separated numbers."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise UsageError(f"takes comma-separated numbers, got {text!r}") from None
+    if not all(np.isfinite(values)):
+        raise UsageError(f"takes finite numbers, got {text!r}")
+    return values
+
+
+def _vector(parts: list[tuple[float, ...]], n: int, option: str, form: str) -> tuple[float, ...]:
+    """The vector of `_vector_part` tokens: `n` numbers in all."""
+    values = tuple(v for part in parts for v in part)
+    if len(values) != n:
+        raise UsageError(f"{option} takes {n} numbers {form}, got {' '.join(','.join(map(str, p)) for p in parts)}")
+    return values
+
+
 def _frames(text: str) -> tuple[int, int | None]:
     first, colon, stop = text.partition(":")
     try:
@@ -160,7 +179,10 @@ def _build(args: argparse.Namespace) -> None:
             normals=args.normals, source=args.source,
         )  # fmt: skip
     save_dano(args.output, dano)
-    print(f"wrote {args.output}: mass {float(dano.mass):.6g} kg, {dano.n_points} points")
+    if args.json:
+        print(json.dumps({"output": args.output, **info_dict(dano)}))
+    else:
+        print(f"wrote {args.output}: mass {float(dano.mass):.6g} kg, {dano.n_points} points")
 
 
 def _parse_window(text: str | None) -> tuple[float, float] | None:
@@ -219,16 +241,21 @@ def _simulate(args: argparse.Namespace) -> None:
     traj = sim.run(n)
     write_csv(args.output, traj, sim)
     bodies = len(sim.world.names) + sum(p.qpos >= 0 for p in sim.world.prims)
-    print(f"wrote {args.output}: {n + 1} frames x {bodies} bodies")
+    summary: dict = {"output": args.output, "frames": n + 1, "bodies": int(bodies), "video": args.video}
+    human = [f"wrote {args.output}: {n + 1} frames x {bodies} bodies"]
     if args.video:
         from dano.sim.render import render_video
 
-        print(f"wrote {render_video(sim, traj, args.video)}")
+        human.append(f"wrote {render_video(sim, traj, args.video, progress=not args.json)}")
     if args.profile:
+        import dataclasses
+
         from dano.sim.run import profile
 
-        for line in profile(sim, n).lines():
-            print(line)
+        timing = profile(sim, n)
+        summary["profile"] = {**dataclasses.asdict(timing), "contact": timing.contact}
+        human += timing.lines()
+    print(json.dumps(summary) if args.json else "\n".join(human))
 
 
 def _sysid(args: argparse.Namespace) -> None:
@@ -237,6 +264,9 @@ def _sysid(args: argparse.Namespace) -> None:
     from dano.plotting import plot_identification
     from dano.sysid.pipeline import SysidConfig, identify_files
 
+    if (args.scene is None) == (args.scene_option is None):
+        raise DanoError("give the scene once: dano sysid SCENE.toml ... (--scene SCENE.toml is the old spelling)")
+    args.scene = args.scene or args.scene_option
     fit = tuple(n.strip() for n in args.fit.split(",") if n.strip())
     if not fit:
         raise DanoError("--fit names at least one parameter, e.g. --fit friction,mass_scale")
@@ -310,16 +340,18 @@ def _trajopt(args: argparse.Namespace) -> None:
     from dano.io import load_dano
     from dano.trajopt.push import PushTask, default_options, push_problem, render_push, solve_push
 
+    x, y = _vector(args.goal, 2, "--goal", "X,Y")
+    goal = (x, y)
     obj = load_dano(args.dano) if args.dano else _default_bunny()
     goal_as_constraint = False if args.goal_cost else None  # None: the robot's default
-    task = PushTask(goal=tuple(args.goal), horizon=args.horizon, dt=args.dt, goal_as_constraint=goal_as_constraint)
+    task = PushTask(goal=goal, horizon=args.horizon, dt=args.dt, goal_as_constraint=goal_as_constraint)
     push = push_problem(obj, args.robot, task, friction=args.friction)
     options = dataclasses.replace(default_options(args.robot), max_iterations=args.max_iterations)
     result = solve_push(push, options, progress=not args.json)
     if args.video:
         render_push(push, result, args.video, progress=not args.json)
     if args.json:
-        params = {"friction": args.friction, "goal": list(args.goal), "horizon": args.horizon, "dt": args.dt}
+        params = {"friction": args.friction, "goal": list(goal), "horizon": args.horizon, "dt": args.dt}
         adjustments = {"goal_world": push.goal_world.tolist()}  # --goal is relative to where the object rests
         print(json.dumps(result.summary(params, adjustments)))
         return
@@ -363,7 +395,14 @@ def _parse_pairs(text: str | None, option: str, n: int) -> dict:
 def _demo(args: argparse.Namespace) -> None:
     from dano.demo import run_demo
 
-    run_demo(args.out, resolution=args.resolution, seed=args.seed, simulate=not args.no_sim)
+    if not args.json:
+        run_demo(args.out, resolution=args.resolution, seed=args.seed, simulate=not args.no_sim)
+        return
+    import contextlib
+
+    with contextlib.redirect_stdout(sys.stderr):  # the demo's own lines; stdout carries the one object
+        summary = run_demo(args.out, resolution=args.resolution, seed=args.seed, simulate=not args.no_sim)
+    print(json.dumps({"output": args.out, **summary}))
 
 
 def _compare(args: argparse.Namespace) -> None:
@@ -402,19 +441,22 @@ def _compare(args: argparse.Namespace) -> None:
 
 def _render_views(args: argparse.Namespace) -> None:
     from dano.fields import load_mesh
-    from dano.vision.data import render_views
+    from dano.vision.synthetic import render_views
 
     mesh = load_mesh(args.mesh, repair=args.repair, scale=args.scale)
     out = render_views(mesh, args.output, n_views=args.views, resolution=args.resolution, seed=args.seed,
                        overwrite=args.overwrite)  # fmt: skip
-    print(f"wrote {out}: {args.views} views of {args.resolution} x {args.resolution} px with masks")
+    if args.json:
+        print(json.dumps({"output": str(out), "views": args.views, "image_size": args.resolution}))
+    else:
+        print(f"wrote {out}: {args.views} views of {args.resolution} x {args.resolution} px with masks")
 
 
 def _fit_field(args: argparse.Namespace) -> None:
     import jax
 
     from dano.fields import GridField, save_grid
-    from dano.vision.data import load_nerf_synthetic
+    from dano.vision.datasets import load_nerf_synthetic
     from dano.vision.fit import FitConfig, fit_field, solidify
 
     views = load_nerf_synthetic(args.dataset, split=args.split, downscale=args.downscale)
@@ -439,7 +481,8 @@ def _track(args: argparse.Namespace) -> None:
     from dano.build import field_from_source
     from dano.sysid.data import Track, write_track
     from dano.types import DANO
-    from dano.vision.data import load_camera, load_frames, load_masks
+    from dano.vision.camera import load_camera
+    from dano.vision.media import load_frames, load_masks
     from dano.vision.track import TrackConfig, track
 
     camera = load_camera(args.camera)
@@ -452,7 +495,7 @@ def _track(args: argparse.Namespace) -> None:
     if args.init:
         init = (np.asarray(args.init[:3]), np.asarray(args.init[3:]))
     config = TrackConfig(iterations=args.iterations, refine_iterations=args.refine)
-    result = track(field, camera, masks, config, init=init)
+    result = track(field, camera, masks, config, init=init, progress=not args.json)
     positions = result.positions
     if args.frame == "com":  # what `dano sysid` reads: the centre of mass
         from dano.mass import mass_properties
@@ -463,6 +506,11 @@ def _track(args: argparse.Namespace) -> None:
     poses = np.concatenate([positions, result.quats], axis=1)
     write_track(args.output, Track.from_poses(poses, 1.0 / args.fps, source=args.video))
     per_frame = result.seconds / len(frames)
+    if args.json:
+        summary = {"output": args.output, "frames": len(frames), "frame": args.frame, "seconds": result.seconds,
+                   "seconds_per_frame": per_frame, "mean_mask_loss": float(np.mean(result.losses))}  # fmt: skip
+        print(json.dumps(summary))
+        return
     print(f"wrote {args.output}: {len(frames)} poses (position of the {args.frame}) in {result.seconds:.1f} s "
           f"({per_frame:.2f} s per frame), mean mask loss {float(np.mean(result.losses)):.2e}")  # fmt: skip
 
@@ -522,6 +570,9 @@ def parser() -> argparse.ArgumentParser:
     b.add_argument("--normals", choices=["autodiff", "fd"], default="autodiff")
     b.add_argument("--resolution", type=_int(4), default=96, help="grid nodes along a mesh's longest side")
     b.add_argument("--repair", action="store_true", help="make a non-watertight mesh watertight with pymeshfix")
+    b.add_argument(
+        "--json", action="store_true", help="one JSON object: output and the DANO's mass properties (dano info)"
+    )
     b.add_argument("--reference-inertia", choices=["tensor", "second-moment"], default="tensor",
                    help="a reference collider's inertia: the tensor (default), or its second moment as the "
                    "reference's simulator used it (to reproduce the authors' trajectories)")  # fmt: skip
@@ -537,12 +588,14 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("-o", "--output", required=True, type=_output(), help="trajectory CSV: t,body,x,y,z,qw,qx,qy,qz")
     s.add_argument("--video", type=_output(*VIDEO), help="render to this .mp4 or .gif")
     s.add_argument("--steps", type=_int(1), help="frames to simulate (default: duration / timestep)")
+    s.add_argument("--json", action="store_true", help="one JSON object (output, frames, bodies, video, profile)")
     s.add_argument("--profile", action="store_true",
                    help="also time the rollout apart: compile, run, and its DANO contact vs the engine")  # fmt: skip
     s.set_defaults(run=_simulate)
 
     y = sub.add_parser("sysid", help="identify friction, mass scale, ... from pose trajectories or object masks")
-    y.add_argument("--scene", required=True, help="scene .toml: the object, the table, contact parameters")
+    y.add_argument("scene", nargs="?", help="scene .toml: the object, the table, contact parameters")
+    y.add_argument("--scene", dest="scene_option", help=argparse.SUPPRESS)  # the old spelling
     y.add_argument("--traj", action="append",
                    help="pose CSV t,x,y,z,qw,qx,qy,qz (repeatable); with --masks: the first frames' poses")  # fmt: skip
     y.add_argument("--masks", help="folder of one object mask per frame (white = object, name order; all black: "
@@ -582,14 +635,16 @@ def parser() -> argparse.ArgumentParser:
         help="gravity direction gx,gy,gz in the data's frame, or 'fit' (plane of motion)",
     )
     y.add_argument("--body", help="the scene body that files without a body column observe")
-    y.add_argument("--window", type=_int(1), help="frame intervals per shooting window (default: whole trajectories)")
+    y.add_argument("--window-frames", "--window", dest="window", type=_int(1),
+                   help="frame intervals per shooting window (default: whole trajectories)")  # fmt: skip
     y.add_argument("--fit-initial", choices=["none", "velocity", "state"],
                    help="also fit each window's initial velocity, or pose and velocity (default: none; "
                    "with --masks: state)")  # fmt: skip
     y.add_argument("--sigma", type=_POSITIVE, default=1e-3, help="tracking noise, m (default 0.001)")
     y.add_argument("--init", help="initial guesses name=value,... (default: the scene's values)")
     y.add_argument("--bounds", help="bounds name=low:high,... (default: Table I ranges, widened)")
-    y.add_argument("--max-steps", type=_int(1), default=50)
+    y.add_argument("--max-iterations", "--max-steps", dest="max_steps", type=_int(1), default=50,
+                   help="Levenberg-Marquardt iterations at most (default 50)")  # fmt: skip
     y.add_argument("--rotation-weight", type=_float(0.0), default=1.0,
                    help="weight of the orientation residuals (0: positions only, for a tracker that could "
                    "not resolve rotation; default 1)")  # fmt: skip
@@ -619,7 +674,7 @@ def parser() -> argparse.ArgumentParser:
     t.add_argument("task", choices=["push"])
     t.add_argument("--robot", choices=["sphere", "panda"], default="sphere")
     t.add_argument("--dano", help="the object, a .dano.npz (default: the Stanford bunny, 0.5 kg, 200 points)")
-    t.add_argument("--goal", type=_float(), nargs=2, default=(0.1, 0.0), metavar=("X", "Y"),
+    t.add_argument("--goal", type=_checked(_vector_part), nargs="+", default=[(0.1,), (0.0,)], metavar="X,Y",
                    help="where the object should end, m, relative to where it rests (default 0.1 0)")  # fmt: skip
     t.add_argument("--horizon", type=_int(1), default=10, help="frames (default 10)")
     t.add_argument("--dt", type=_POSITIVE, default=0.08, help="seconds per frame (default 0.08)")
@@ -662,7 +717,10 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("mesh", help="mesh file (.ply .obj .stl ...)")
     r.add_argument("-o", "--output", required=True, type=_checked(_in_a_folder), help="dataset folder to create")
     r.add_argument("--views", type=_int(1), default=50)
-    r.add_argument("--resolution", type=_int(8), default=64, help="image side, px (default 64)")
+    r.add_argument(
+        "--image-size", "--resolution", dest="resolution", type=_int(8), default=64, help="image side, px (default 64)"
+    )
+    r.add_argument("--json", action="store_true", help="one JSON object (output, views, image_size)")
     r.add_argument("--scale", type=_POSITIVE, default=1.0, help="multiply lengths by this (m per unit)")
     r.add_argument("--repair", action="store_true", help="make a non-watertight mesh watertight first")
     r.add_argument("--seed", type=_int(0), default=0)
@@ -701,17 +759,50 @@ def parser() -> argparse.ArgumentParser:
         type=_checked(_numbers(7, "x,y,z,qw,qx,qy,qz", 3)),
         help="first frame's pose x,y,z,qw,qx,qy,qz (default: a guess from the first mask)",
     )
-    k.add_argument("--iterations", type=_int(1), default=60, help="Adam steps per frame (default 60)")
+    k.add_argument(
+        "--steps", "--iterations", dest="iterations", type=_int(1), default=60, help="Adam steps per frame (default 60)"
+    )
+    k.add_argument("--json", action="store_true", help="one JSON object (output, frames, seconds, mean_mask_loss, ...)")
     k.add_argument("--refine", type=_int(0), default=0, help="steps of joint refinement over all frames (default 0)")
     k.set_defaults(run=_track)
 
     d = sub.add_parser("demo", help="build and plot a DANO of the Stanford bunny")
-    d.add_argument("--out", type=_checked(_in_a_folder), default="dano-demo", help="output folder (default dano-demo)")
+    d.add_argument(
+        "-o",
+        "--output",
+        "--out",
+        dest="out",
+        type=_checked(_in_a_folder),
+        default="dano-demo",
+        help="output folder (default dano-demo)",
+    )
+    d.add_argument("--json", action="store_true", help="one JSON object: what the demo measured (also summary.json)")
     d.add_argument("--resolution", type=_int(8), default=96)
     d.add_argument("--seed", type=_int(0), default=0)
     d.add_argument("--no-sim", action="store_true", help="only build and plot the DANO")
     d.set_defaults(run=_demo)
     return p
+
+
+RENAMED = {
+    ("demo", "--out"): "-o/--output",
+    ("sysid", "--scene"): "the positional SCENE (dano sysid SCENE.toml ...)",
+    ("sysid", "--max-steps"): "--max-iterations",
+    ("sysid", "--window"): "--window-frames",
+    ("render-views", "--resolution"): "--image-size",
+    ("track", "--iterations"): "--steps",
+}
+"""Old spellings still accepted for one release (they go in 0.3), each with a note on stderr: one
+word per concept across commands (`-o` for output, `--max-iterations` for a solver's cap, `--steps`
+for a fixed count, `--resolution` for grid nodes, `--window` for a density window)."""
+
+
+def _renamed_notes(command: str, argv: list[str]) -> None:
+    for token in argv:
+        new = RENAMED.get((command, token.split("=", 1)[0]))
+        if new is not None:
+            print(f"dano {command}: note: {token.split('=', 1)[0]} is now {new} (the old name goes in 0.3)",
+                  file=sys.stderr)  # fmt: skip
 
 
 CACHE_VARIABLE = "DANO_COMPILATION_CACHE"
@@ -756,10 +847,12 @@ def _warning_line(command: str):
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = attach_negative_values(sys.argv[1:] if argv is None else list(argv))
     try:
-        args = parser().parse_args(attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
+        args = parser().parse_args(argv)
     except SystemExit as e:  # --help, --version (0) or a usage error (2, its one line already printed)
         return e.code if isinstance(e.code, int) else 2
+    _renamed_notes(args.command, argv)
     import jax  # after parsing: `dano --help` and usage errors need no JAX
 
     # Float64 throughout, as the tests run: identification needs it (in float32 the Gauss-Newton

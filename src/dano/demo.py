@@ -104,8 +104,9 @@ def identification_demo(out: Path, noise: float = 1e-3, seed: int = 0) -> dict:
     tracks it for 33 frames with 1 mm noise; fit mu and the initial velocity from mu = 0.2."""
     from dano.fields import BoxField
     from dano.plotting import plot_identification
+    from dano.scenarios import slide_scene
     from dano.sysid import Recording, identify, make_problem
-    from dano.sysid.experiments import slide_scene, slide_track
+    from dano.sysid.experiments import slide_track
 
     soap = build_dano(BoxField(size=(0.09, 0.06, 0.03)), mass=0.1, n_points=1000, seed=seed)
     scene = slide_scene(soap, friction=0.5)

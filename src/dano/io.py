@@ -7,6 +7,7 @@ so a crash never leaves half a file; they are read with `allow_pickle=False`.
 
 import contextlib
 import os
+import shutil
 import tempfile
 import zipfile
 from collections.abc import Iterable, Iterator
@@ -32,6 +33,13 @@ def _shapes(n: int) -> dict[str, tuple[int, ...]]:
             "alpha": (), "window": (2,), "mass_stderr": (), "com_stderr": (3,), "inertia_stderr": (3, 3)}  # fmt: skip
 
 
+def _usual_permissions(path: Path, mode: int) -> None:
+    """`mode` less the process's umask (mkstemp and mkdtemp leave files and folders private)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, mode & ~umask)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
     """Yields a temporary path beside `path`; renamed onto `path` if the block succeeds, else removed.
@@ -46,12 +54,31 @@ def atomic_write(path: str | Path, suffix: str = ".tmp") -> Iterator[Path]:
     tmp = Path(name)
     try:
         yield tmp
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
+        _usual_permissions(tmp, 0o666)
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | Path) -> Iterator[Path]:
+    """Yields a temporary folder beside `path`; renamed onto `path` (replacing what is there) if the
+    block succeeds, else removed: a folder of outputs appears complete or not at all."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        yield tmp
+        _usual_permissions(tmp, 0o777)
+        if path.exists():
+            old = tmp.with_suffix(".old")
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old) if old.is_dir() else old.unlink()
+        else:
+            os.replace(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def atomic_savez(path: str | Path, **arrays) -> None:

@@ -88,35 +88,3 @@ def _fill_zero_gradients(points: np.ndarray, densities: np.ndarray, gradients: n
         axis = np.linalg.eigh(q.T @ q)[1][:, 0]
         filled[i] = axis if axis @ slope > 0 else -axis
     return filled
-
-
-def reference_drop_scene(
-    collider: str | Path,
-    sliding_friction: float,
-    duration: float = 7.0,
-    integrator: Literal["implicit", "explicit"] = "explicit",
-):
-    """The scene of the reference's `bunny_trajectory_<mu>.csv` runs (Dojo.jl `bunny.jl`, commit c8ccf20e).
-
-    Bunny collider with the second moment as inertia, ground z = 0, h = 2 ms, impact spring 1e5,
-    damper 1e6, sliding drag 0.01, torsional and rolling friction 0.01, the Coulomb law without its
-    2/pi (as those files were made), the hard inside test and the force at the overlap centroid; COM
-    starts at (0, 0, 1.1), q = normalize(1, 0.6, 0, 0.5), v = (2, 2, 1) m/s, body angular velocity
-    (0.5, 1, 1) rad/s. One MuJoCo step per frame, so free flight integrates exactly as Dojo's does.
-    The paper's explicit contact by default (the scheme those files were compared with in the
-    paper); `integrator="implicit"` for dano's default step (README: both against the files).
-    """
-    from dano.contact import ContactParams
-    from dano.math import quat_to_mat
-    from dano.sim import DanoBody, Scene
-
-    bunny = load_reference(collider, inertia="second_moment")
-    q0 = np.array([1.0, 0.6, 0.0, 0.5]) / np.linalg.norm([1.0, 0.6, 0.0, 0.5])
-    w_world = np.asarray(quat_to_mat(jnp.asarray(q0))) @ np.array([0.5, 1.0, 1.0])
-    contact = ContactParams(
-        impact_spring=1e5, impact_damper=1e6, sliding_drag=0.01, sliding_friction=sliding_friction,
-        torsional_friction=0.01, rolling_friction=0.01, coulomb_gain=1.0, indicator_width=0.0,
-    )  # fmt: skip
-    body = DanoBody("bunny", bunny, pos=(0.0, 0.0, 1.1), quat=tuple(q0), vel=(2.0, 2.0, 1.0), angvel=tuple(w_world))
-    return Scene(timestep=0.002, substeps=1, duration=duration, bodies=(body,), contact=contact, force_mode="centroid",
-                 integrator=integrator)  # fmt: skip

@@ -1,4 +1,6 @@
-"""One JSON shape for what a solver reports (`dano sysid --json`, `dano trajopt --json`).
+"""How every solver reports: one enumeration of how it stopped (`Result`, after Optimistix's
+`RESULTS`), `throw=` to raise instead of report (`SolverError`), and one JSON shape (`dano sysid
+--json`, `dano trajopt --json`).
 
 Every result object has the keys of `RESULT_KEYS`, keyed by the names as the user typed them:
 
@@ -13,6 +15,35 @@ Every result object has the keys of `RESULT_KEYS`, keyed by the names as the use
 
 A command adds its own keys beside these.
 """
+
+import enum
+
+from dano.errors import DanoError
+
+
+class Result(enum.Enum):
+    """How a solver stopped; the value is its message for people. Only `successful` converged."""
+
+    successful = "converged"
+    max_steps_reached = "did not converge: iteration limit reached"
+    stalled = "did not converge: no step lowers the objective (line search failed at the regularisation limit)"
+    penalty_limit = "did not converge: penalty limit reached with the constraints violated"
+    max_outer_reached = "did not converge: multiplier updates exhausted with the constraints violated"
+
+    @property
+    def converged(self) -> bool:
+        return self is Result.successful
+
+
+class SolverError(DanoError):
+    """A solver that did not converge, raised where `throw=True` asked for an error instead of a report."""
+
+
+def finish(result: Result, message: str, throw: bool) -> None:
+    """Raises `SolverError(message)` where `throw` and the solver did not converge."""
+    if throw and not result.converged:
+        raise SolverError(message)
+
 
 RESULT_KEYS = (
     "params", "stderr", "intervals", "iterations", "converged", "message", "rms", "seconds", "adjustments",

@@ -28,6 +28,8 @@ from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, mu
 from dano.errors import DanoError
 from dano.extras import require
 from dano.fields import AbstractField
+from dano.sim.compile import add_primitive
+from dano.sim.scene import Primitive
 from dano.types import DANO
 
 
@@ -61,6 +63,10 @@ class Pusher:
     def path(self, times: np.ndarray) -> np.ndarray:
         """Centre at `times` (n,) s: (n, 3)."""
         return self.start[None, :] + np.asarray(times)[:, None] * self.velocity[None, :]
+
+    def primitive(self) -> Primitive:
+        """The sphere as a mocap-driven primitive named "pusher" at its start."""
+        return Primitive("pusher", "sphere", (self.radius,), tuple(self.start.tolist()), mode="mocap")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -230,9 +236,7 @@ def _simulate_mesh(model: Model, height: float, s: Scenarios) -> tuple[np.ndarra
             inertial=(model.com, model.inertia_per_mass),
         )
         if push is not None:
-            body = spec.worldbody.add_body(name="pusher", pos=push.start.tolist(), mocap=True)
-            body.add_geom(type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[push.radius, 0, 0],
-                          friction=[s.friction, 0.005, 0.0001])  # fmt: skip
+            add_primitive(spec, push.primitive(), friction=s.friction)
         return spec.compile()
 
     m = compiled(None)
@@ -259,16 +263,14 @@ def _simulate_mesh(model: Model, height: float, s: Scenarios) -> tuple[np.ndarra
 def _simulate_dano(model: Model, height: float, s: Scenarios) -> tuple[np.ndarray, ...]:
     from dano.contact import ContactParams
     from dano.sim.run import Simulation, body_poses
-    from dano.sim.scene import DanoBody, Primitive, Scene
+    from dano.sim.scene import DanoBody, Scene
 
     dano = model.dano
     com = np.asarray(dano.com)  # type: ignore[union-attr]
 
     def run(pos, quat, vel, seconds, push=None):
         body = DanoBody("object", dano, pos=tuple(pos), quat=tuple(quat), vel=tuple(vel))  # type: ignore[arg-type]
-        spheres = (
-            () if push is None else (Primitive("pusher", "sphere", (push.radius,), tuple(push.start), mode="mocap"),)
-        )
+        spheres = () if push is None else (push.primitive(),)
         scene = Scene(
             bodies=(body,), primitives=spheres, timestep=s.timestep, duration=seconds,
             contact=ContactParams(sliding_friction=s.friction),

@@ -63,9 +63,15 @@ _GEOM = {
 }
 
 
-def _add_primitive(spec: mujoco.MjSpec, p: Primitive) -> None:
+def add_primitive(spec: mujoco.MjSpec, p: Primitive, friction: float | None = None) -> None:
+    """Adds a primitive to a MuJoCo spec as dano's scenes have it: a static geom, a free or mocap
+    body, or an actuated one (three world-axis slides under force motors, weight compensated);
+    `friction` sets MuJoCo's own sliding friction on its geom (for MuJoCo C baselines)."""
+    mu = {} if friction is None else {"friction": [friction, 0.005, 0.0001]}
     if p.mode == "static":
-        spec.worldbody.add_geom(name=p.name, type=_GEOM[p.kind], size=_mj_size(p), pos=list(p.pos), quat=list(p.quat))
+        spec.worldbody.add_geom(
+            name=p.name, type=_GEOM[p.kind], size=_mj_size(p), pos=list(p.pos), quat=list(p.quat), **mu
+        )
         return
     b = spec.worldbody.add_body(name=p.name, pos=list(p.pos), quat=list(p.quat), mocap=p.mode == "mocap")
     if p.mode == "free":
@@ -79,7 +85,7 @@ def _add_primitive(spec: mujoco.MjSpec, p: Primitive) -> None:
             b.add_joint(name=f"{p.name}_slide{axis}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=local.tolist())
             spec.add_actuator(name=f"{p.name}_force{axis}", target=f"{p.name}_slide{axis}",
                               trntype=mujoco.mjtTrn.mjTRN_JOINT).set_to_motor()  # fmt: skip
-    geom = b.add_geom(type=_GEOM[p.kind], size=_mj_size(p), mass=p.mass if p.mode in ("free", "actuated") else 0.0)
+    geom = b.add_geom(type=_GEOM[p.kind], size=_mj_size(p), mass=p.mass if p.mode in MOVING else 0.0, **mu)
     if not p.collide:
         geom.contype = geom.conaffinity = 0
 
@@ -194,7 +200,7 @@ def _add_scene(spec: mujoco.MjSpec, scene: Scene) -> None:
     for body in scene.bodies:
         _add_dano(spec, body)
     for p in scene.primitives:
-        _add_primitive(spec, p)
+        add_primitive(spec, p)
 
 
 def _dano_state(scene: Scene, b: DanoBody) -> DanoState:

@@ -93,7 +93,7 @@ class Primitive:
             DANO contacts always do. An actuated end effector kept clear of them some other way
             (a constraint, a horizontal push) can turn them off: with nothing else for MuJoCo to
             move, the implicit step then integrates it itself and skips `mjx.step` (half of a
-            step's compiled program for the push of `dano.sysid.experiments.push_scene`).
+            step's compiled program for the push of `dano.scenarios.push_scene`).
     """
 
     name: str

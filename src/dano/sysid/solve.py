@@ -16,6 +16,8 @@ projected path, λ divided by 3 after a success and multiplied by 10 after a fai
 
 import dataclasses
 import time
+from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +26,7 @@ from jaxtyping import Array, Float
 from scipy.stats import chi2
 from tqdm.auto import tqdm
 
+from dano.results import Result, finish
 from dano.sysid.problem import (
     DEFAULT_BOUNDS,
     Problem,
@@ -47,7 +50,8 @@ class Identification:
         loss: ½ Σ r² at the initial guess and after every accepted iteration (r in units of σ).
         seconds: wall time, JIT compilation included when it happened.
         iterations: accepted iterations.
-        converged: a stopping test passed (not the iteration limit or a stalled line search).
+        result: how it stopped (`dano.results.Result`): `successful` when a stopping test passed,
+            `max_steps_reached` at the iteration limit.
         message: which test stopped it.
         theta: (p,) the estimate in `problem.names` order.
         delta: (n, s) the fitted initial-state corrections per window (empty unless fitted).
@@ -73,7 +77,7 @@ class Identification:
     loss: list[float]
     seconds: float
     iterations: int
-    converged: bool
+    result: Result
     message: str
     theta: np.ndarray
     delta: np.ndarray
@@ -86,6 +90,10 @@ class Identification:
     adjustments: dict = dataclasses.field(default_factory=dict)
     loss_function: str = "l2"
     rms_observation: float | None = None
+
+    @property
+    def converged(self) -> bool:
+        return self.result.converged
 
     def summary(self) -> dict:
         """The `dano sysid --json` object (`dano.results`), with the intervals' method and level, the
@@ -250,6 +258,7 @@ def identify(
     interval: str = "gauss-newton",
     level: float = 0.95,
     loss: str = "l2",
+    throw: bool = False,
 ) -> Identification:
     """Fits `problem.names` (and the windows' initial states if the problem asks) by projected LM.
 
@@ -281,6 +290,12 @@ def identify(
         loss: "l2" (least squares), or "huber" or "cauchy" for data with outliers (impacts the model
             misses, tracking failures): see `robust`. The stderr and intervals then follow the
             robust loss as if it were a likelihood (an approximation).
+        throw: raise `SolverError` where the fit stops without converging (else it is reported in
+            `Identification.result`).
+
+    Raises:
+        SysidError: bad settings, or a loss that is not finite at the initial guess.
+        SolverError: `throw` and the fit did not converge.
     """
     if interval not in ("gauss-newton", "profile"):
         raise SysidError(f"interval must be 'gauss-newton' or 'profile', got {interval!r}")
@@ -317,24 +332,25 @@ def identify(
         raise SysidError("the loss is not finite at the initial guess: the simulation blows up there")
     history = [point.loss]
     bar = tqdm(total=max_steps, desc="sysid", disable=None if progress else True, leave=False)
-    tolerances = dict(gtol=gtol, ftol=ftol, rtol=rtol, xtol=xtol)
-    loss_at = lambda y: float(loss_fn(*split(y), problem.windows))  # noqa: E731
-    message, converged = "", False
+    tol = _Tolerances(gtol, ftol, rtol, xtol)
+    objective = _Objective(evaluate, lambda y: float(loss_fn(*split(y), problem.windows)), y_lo, y_hi)
+    result, message = Result.max_steps_reached, ""
     # Stage 1 fits θ with the initial states held as read from the data; stage 2 frees them. From a
     # poor θ, fitting states at once can wander into a wrong basin (e.g. a fast spin that mimics low
     # friction); started from stage 1's θ the joint fit stays in the right one.
     stages = [np.arange(y.size) >= p, np.zeros(y.size, bool)] if s else [np.zeros(y.size, bool)]
     for hold in stages:
-        point, message, converged = _levenberg_marquardt(
-            point, evaluate, loss_at, y_lo, y_hi, hold, max_steps - (len(history) - 1), history, bar, **tolerances
+        point, result, message = _levenberg_marquardt(
+            point, objective, hold, max_steps - (len(history) - 1), tol, _logger(history, bar)
         )
     bar.close()
+    finish(result, f"identification {result.value}: {message}", throw)
     stderr = _stderr(point.H, point.loss, problem, p)
     q = float(np.sqrt(chi2.ppf(level, 1)))
     flags: list[str] = []
     if interval == "profile":
         variance = 2.0 * point.loss / max(problem.n_residuals - y.size, 1)
-        refit = _Refit(point, evaluate, loss_at, y_lo, y_hi, only_theta=s == 0 and p == 1, tolerances=tolerances)
+        refit = _Refit(point, objective, only_theta=s == 0 and p == 1, tol=tol)
         bounds_found = []
         for k in range(p):
             deviance = lambda v, k=k: 2.0 * (refit(k, v) - point.loss) / max(variance, 1e-300)  # noqa: E731
@@ -352,7 +368,7 @@ def identify(
     return Identification(
         params={lab: float(v) for lab, v in zip(labels, theta, strict=True)},
         stderr=dict(zip(labels, stderr, strict=True)),
-        loss=history, seconds=seconds, iterations=len(history) - 1, converged=converged, message=message,
+        loss=history, seconds=seconds, iterations=len(history) - 1, result=result, message=message,
         theta=theta, delta=delta, **_rms(problem, np.asarray(point.r)),  # pyright: ignore[reportArgumentType]
         intervals=intervals, interval=interval, level=level, flags=tuple(flags), adjustments=adjustments,
         loss_function=loss,
@@ -363,23 +379,19 @@ class _Refit:
     """½Σr² minimised over every unknown but θ_k = v (the profile), warm-started from the last
     refit; with θ alone unknown and one parameter, just the loss at v."""
 
-    def __init__(self, best: "_Point", evaluate, loss_at, y_lo, y_hi, only_theta: bool, tolerances: dict):
-        self.best, self.evaluate, self.loss_at = best, evaluate, loss_at
-        self.y_lo, self.y_hi, self.only_theta, self.tolerances = y_lo, y_hi, only_theta, tolerances
+    def __init__(self, best: "_Point", objective: "_Objective", only_theta: bool, tol: "_Tolerances"):
+        self.best, self.objective, self.only_theta, self.tol = best, objective, only_theta, tol
         self.last: dict = {}
 
     def __call__(self, k: int, v: float) -> float:
         start = self.last.get((k, v > self.best.y[k]), self.best).y.copy()
         start[k] = v
         if self.only_theta:
-            return self.loss_at(start)
-        point = _Point(start, *self.evaluate(start))
+            return self.objective.loss_at(start)
+        point = _Point(start, *self.objective.evaluate(start))
         hold = np.zeros(start.size, bool)
         hold[k] = True
-        quiet = tqdm(disable=True)
-        point, _, _ = _levenberg_marquardt(
-            point, self.evaluate, self.loss_at, self.y_lo, self.y_hi, hold, 20, [], quiet, **self.tolerances
-        )
+        point, _, _ = _levenberg_marquardt(point, self.objective, hold, 20, self.tol, lambda point: None)
         self.last[(k, v > self.best.y[k])] = point
         return point.loss
 
@@ -478,36 +490,68 @@ class _Point:
     H: np.ndarray
 
 
-def _levenberg_marquardt(point, evaluate, loss_at, y_lo, y_hi, hold, max_steps, history, bar, gtol, ftol, rtol, xtol):
-    """Projected LM iterations from `point` with the unknowns in `hold` fixed; appends to `history`."""
+class _Objective(NamedTuple):
+    """The loss as LM sees it: `evaluate(y)` -> (r, loss, g, H); `loss_at(y)` the loss alone; the
+    bounds (y_lo, y_hi) the unknowns never leave."""
+
+    evaluate: Callable
+    loss_at: Callable[[np.ndarray], float]
+    y_lo: np.ndarray
+    y_hi: np.ndarray
+
+
+class _Tolerances(NamedTuple):
+    """`identify`'s stopping tests (see its docstring)."""
+
+    gtol: float
+    ftol: float
+    rtol: float
+    xtol: float
+
+
+def _logger(history: list[float], bar) -> Callable[["_Point"], None]:
+    """Records an accepted iterate's loss and shows it."""
+
+    def log(point: "_Point") -> None:
+        history.append(point.loss)
+        bar.update(1)
+        bar.set_postfix(loss=f"{point.loss:.4g}")
+
+    return log
+
+
+def _levenberg_marquardt(
+    point: _Point, objective: _Objective, hold: np.ndarray, max_steps: int, tol: _Tolerances, log: Callable
+) -> tuple[_Point, Result, str]:
+    """Projected LM iterations from `point` with the unknowns in `hold` fixed; `log` sees every
+    accepted iterate. Returns the last iterate, how it stopped and which test stopped it."""
     lam = 1e-3
+    y_lo, y_hi = objective.y_lo, objective.y_hi
     for _ in range(max(max_steps, 0)):
         y, g = point.y, point.g
         free = ~(hold | (y <= y_lo) & (g > 0) | (y >= y_hi) & (g < 0))
-        if np.max(np.abs(g[free]), initial=0.0) <= gtol * max(point.loss, 1e-300):
-            return point, "gradient below gtol", True
+        if np.max(np.abs(g[free]), initial=0.0) <= tol.gtol * max(point.loss, 1e-300):
+            return point, Result.successful, "gradient below gtol"
         accepted = False
         while not accepted and lam < 1e12:
             step = _lm_step(point.H, g, free, lam)
             for alpha in (1.0, 1 / 3, 1 / 9, 1 / 27):
                 y_try = np.clip(y + alpha * step, y_lo, y_hi)
-                loss_try = loss_at(y_try)
+                loss_try = objective.loss_at(y_try)
                 if np.isfinite(loss_try) and loss_try <= point.loss + 1e-4 * g @ (y_try - y):
                     accepted = True
                     break
             lam = lam / 3 if accepted else lam * 10
         if not accepted:
-            return point, "no decrease along the LM direction (a minimum to working precision)", True
+            return point, Result.successful, "no decrease along the LM direction (a minimum to working precision)"
         previous = point
-        point = _Point(y_try, *evaluate(y_try))
-        history.append(point.loss)
-        bar.update(1)
-        bar.set_postfix(loss=f"{point.loss:.4g}")
-        if previous.loss - point.loss <= max(rtol * previous.loss, ftol):
-            return point, "loss decrease below ftol", True
-        if np.all(np.abs(y_try - y) <= xtol * (np.abs(y_try) + xtol)):
-            return point, "step below xtol", True
-    return point, "iteration limit", False
+        point = _Point(y_try, *objective.evaluate(y_try))
+        log(point)
+        if previous.loss - point.loss <= max(tol.rtol * previous.loss, tol.ftol):
+            return point, Result.successful, "loss decrease below ftol"
+        if np.all(np.abs(y_try - y) <= tol.xtol * (np.abs(y_try) + tol.xtol)):
+            return point, Result.successful, "step below xtol"
+    return point, Result.max_steps_reached, "iteration limit"
 
 
 def _lm_step(H: np.ndarray, g: np.ndarray, free: np.ndarray, lam: float) -> np.ndarray:

@@ -26,6 +26,7 @@ import dataclasses
 import functools
 import time
 from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -33,6 +34,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano.errors import DanoError
+from dano.results import Result, finish
 
 
 class TrajoptError(DanoError):
@@ -108,8 +110,9 @@ class Solution:
         states: (T+1, n); controls: (T, m).
         cost: the objective ∑ℓ + ℓ_T at the solution (without the Lagrangian terms).
         max_violation: the largest constraint violation (inequality excess or |h|).
-        converged: constraints within tolerance and the last inner solve converged.
-        message: why it stopped, in words.
+        result: how it stopped (`dano.results.Result`): `successful` when the constraints are
+            within tolerance and the last inner solve converged.
+        message: why it stopped, in words, with the figures.
         iterations: iLQR iterations in all; outer: multiplier updates.
         seconds: wall time (JIT compilation included).
         history: per iteration (cost, max violation, accepted step size or 0, regularisation).
@@ -120,13 +123,34 @@ class Solution:
     controls: np.ndarray
     cost: float
     max_violation: float
-    converged: bool
+    result: Result
     message: str
     iterations: int
     outer: int
     seconds: float
     history: list[tuple[float, float, float, float]]
     multipliers: tuple[np.ndarray, np.ndarray]
+
+    @property
+    def converged(self) -> bool:
+        return self.result.converged
+
+
+class _Iterate(NamedTuple):
+    """The inner loop's state: states (T+1, n), controls (T, m), the regularisation, iterations so far."""
+
+    xs: Array
+    us: Array
+    reg: float
+    iterations: int
+
+
+class _Multipliers(NamedTuple):
+    """The augmented Lagrangian's λ (T, p), ν (q,) and penalty ρ."""
+
+    lam: Array
+    nu: Array
+    rho: float
 
 
 def rollout(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: Float[Array, "T m"]) -> Array:
@@ -285,14 +309,17 @@ def solve(
     controls: Float[Array, "T m"],
     options: Options = Options(),
     progress: bool = False,
+    throw: bool = False,
 ) -> Solution:
     """Solves `problem` from x0, starting from the open-loop `controls` (T, m).
 
-    Never raises for a problem it cannot solve: `Solution.converged` is False and `message` says
-    why (iteration limit, penalty limit, a rollout that diverged to non-finite states).
+    A problem it cannot solve is reported, not raised (`Solution.result` says how it stopped,
+    `message` why: iteration limit, penalty limit, a line search that found no decrease), unless
+    `throw`.
 
     Raises:
         TrajoptError: controls of the wrong shape, or a non-finite x0 or initial rollout.
+        SolverError: `throw` and the solve did not converge.
     """
     start = time.perf_counter()
     x0 = jnp.asarray(x0)
@@ -307,56 +334,72 @@ def solve(
     xs = fn.rollout(x0, us)
     if not bool(jnp.all(jnp.isfinite(xs))):
         raise TrajoptError("the initial controls' rollout is not finite")
-    lam = jnp.zeros((T, fn.p))
-    nu = jnp.zeros(fn.q)
-    rho = options.penalty
-    reg = options.regularization
+    it = _Iterate(xs, us, options.regularization, 0)
+    mult = _Multipliers(jnp.zeros((T, fn.p)), jnp.zeros(fn.q), options.penalty)
     history: list[tuple[float, float, float, float]] = []
-    iterations, outer, message, worst = 0, 0, "", float("inf")
-
+    result, message, worst, outer = Result.max_outer_reached, "", float("inf"), 0
     bar = _bar(progress, options.max_iterations)
     try:
         for outer in range(1, options.max_outer + 1):  # noqa: B007 (reported after the loop)
-            inner_ok, xs, us, reg, iterations, message = _inner(
-                fn, xs, us, lam, nu, rho, reg, options, history, bar, iterations
+            it, inner = _inner(fn, it, mult, options, _logger(fn, history, bar, mult.rho))
+            worst_j, c, h = fn.violation(it.xs, it.us)
+            worst = float(worst_j)
+            if worst <= options.constraint_tol and inner.converged:
+                result, message = Result.successful, f"constraint violation {worst:.2e} <= {options.constraint_tol:g}"
+                break
+            if it.iterations >= options.max_iterations:
+                result, message = (
+                    Result.max_steps_reached,
+                    f"{options.max_iterations} iterations, the last inner solve {inner.name}",
+                )
+                break
+            if mult.rho >= options.penalty_max:
+                result, message = Result.penalty_limit, f"constraint violation {worst:.2e}"
+                break
+            mult = _Multipliers(
+                jnp.maximum(0.0, mult.lam + mult.rho * c),
+                mult.nu + mult.rho * h,
+                min(mult.rho * options.penalty_scale, options.penalty_max),
             )
-            worst, c, h = fn.violation(xs, us)
-            worst = float(worst)
-            if worst <= options.constraint_tol and inner_ok:
-                message = f"converged: constraint violation {worst:.2e} <= {options.constraint_tol:g}"
-                break
-            if iterations >= options.max_iterations:
-                message = f"did not converge: iteration limit {options.max_iterations} reached ({message})"
-                break
-            if rho >= options.penalty_max:
-                message = f"did not converge: penalty limit reached, constraint violation {worst:.2e}"
-                break
-            lam = jnp.maximum(0.0, lam + rho * c)
-            nu = nu + rho * h
-            rho = min(rho * options.penalty_scale, options.penalty_max)
         else:
-            message = f"did not converge: {options.max_outer} multiplier updates, constraint violation {worst:.2e}"
+            message = f"{options.max_outer} multiplier updates, constraint violation {worst:.2e}"
     finally:
         if bar is not None:
             bar.close()
-    worst = float(fn.violation(xs, us)[0])
-    converged = message.startswith("converged")
+    message = f"{result.value}: {message}"
+    finish(result, f"iLQR {message}", throw)
     return Solution(
-        states=np.asarray(xs), controls=np.asarray(us), cost=float(fn.objective(xs, us)), max_violation=worst,
-        converged=converged, message=message, iterations=iterations, outer=outer,
-        seconds=time.perf_counter() - start, history=history, multipliers=(np.asarray(lam), np.asarray(nu)),
+        states=np.asarray(it.xs), controls=np.asarray(it.us), cost=float(fn.objective(it.xs, it.us)),
+        max_violation=float(fn.violation(it.xs, it.us)[0]), result=result, message=message,
+        iterations=it.iterations, outer=outer, seconds=time.perf_counter() - start, history=history,
+        multipliers=(np.asarray(mult.lam), np.asarray(mult.nu)),
     )  # fmt: skip
 
 
-def _inner(fn: _Compiled, xs, us, lam, nu, rho, reg, o: Options, history, bar, iterations):
-    """iLQR on the augmented cost for fixed multipliers; returns (ok, xs, us, reg, iterations, message)."""
-    J = float(fn.augmented(xs, us, lam, nu, rho))
-    message = "inner iteration limit"
+def _logger(fn: "_Compiled", history: list, bar, rho: float) -> Callable:
+    """Records an iteration (cost, violation, accepted step or 0, regularisation) and shows it."""
+
+    def log(xs, us, alpha: float, reg: float) -> None:
+        worst = float(fn.violation(xs, us)[0])
+        history.append((float(fn.objective(xs, us)), worst, alpha, reg))
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(cost=f"{history[-1][0]:.4g}", violation=f"{worst:.1e}", rho=f"{rho:.0e}")
+
+    return log
+
+
+def _inner(fn: "_Compiled", it: _Iterate, mult: _Multipliers, o: Options, log: Callable) -> tuple[_Iterate, Result]:
+    """iLQR on the augmented cost for fixed multipliers, from `it` until its cost stops falling
+    (`successful`), the line search fails at the regularisation limit (`stalled`) or the
+    iteration limit (`max_steps_reached`)."""
+    xs, us, reg, iterations = it
+    J = float(fn.augmented(xs, us, *mult))
     expansion = None
     while iterations < o.max_iterations:
         iterations += 1
         if expansion is None:  # kept after a rejected step: only the regularisation changes
-            expansion = fn.expand(xs, us, lam, nu, rho, o.jacobian_batch)
+            expansion = fn.expand(xs, us, *mult, o.jacobian_batch)
         A, B, g, H, gT, HT = expansion
         while True:
             k, K, dV, failed = fn.backward(A, B, g, H, gT, HT, reg)
@@ -364,14 +407,14 @@ def _inner(fn: _Compiled, xs, us, lam, nu, rho, reg, o: Options, history, bar, i
                 break
             reg = reg * 10.0
             if reg > o.reg_max:
-                return False, xs, us, o.reg_max, iterations, "regularisation limit in the backward pass"
+                return _Iterate(xs, us, o.reg_max, iterations), Result.stalled
         step_small = float(jnp.max(jnp.abs(k))) <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
         accepted = False
         for alpha in o.line_search:
             x_new, u_new = fn.forward(xs, us, k, K, alpha)
             if not bool(jnp.all(jnp.isfinite(x_new))):
                 continue
-            J_new = float(fn.augmented(x_new, u_new, lam, nu, rho))
+            J_new = float(fn.augmented(x_new, u_new, *mult))
             predicted = -(alpha * float(dV[0]) + alpha**2 * float(dV[1]))
             if J - J_new >= o.armijo * max(predicted, 0.0) and J_new <= J:
                 accepted = True
@@ -383,16 +426,12 @@ def _inner(fn: _Compiled, xs, us, lam, nu, rho, reg, o: Options, history, bar, i
         else:
             decrease = 0.0
             reg = reg * 10.0
-        worst = float(fn.violation(xs, us)[0])
-        history.append((float(fn.objective(xs, us)), worst, alpha if accepted else 0.0, reg))
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(cost=f"{history[-1][0]:.4g}", violation=f"{worst:.1e}", rho=f"{rho:.0e}")
+        log(xs, us, alpha if accepted else 0.0, reg)
         if step_small or (accepted and decrease <= o.cost_tol * max(abs(J), 1e-12)):
-            return True, xs, us, reg, iterations, "inner solve converged"
+            return _Iterate(xs, us, reg, iterations), Result.successful
         if not accepted and reg > o.reg_max:
-            return False, xs, us, o.reg_max, iterations, "line search failed at the regularisation limit"
-    return False, xs, us, reg, iterations, message
+            return _Iterate(xs, us, o.reg_max, iterations), Result.stalled
+    return _Iterate(xs, us, reg, iterations), Result.max_steps_reached
 
 
 def _bar(progress: bool, total: int):

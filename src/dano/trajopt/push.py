@@ -1,13 +1,10 @@
 """The paper's push-and-slide task (Sec. V-B, Fig. 7) as an optimal control problem.
 
 An end effector pushes a DANO resting on the table so that it slides to a goal, then returns to
-its own goal. Two robots:
+its own goal. Robots behind one interface, `AbstractPusher` (`PUSHERS` by name):
 
-- "sphere": the paper's simplification, a fully actuated sphere (1 kg, weight compensated) driven by
-  a force (N) along x, y, z; controls are those forces, bounded by `PushTask.force_limit`.
-- "panda": the 7-joint Franka Panda of example-robot-data, its collision meshes touching the DANO
-  through the contact model; controls are the arm's position-servo targets (fingers held), bounded
-  by the joint ranges, with the servo torque kp (target − q) − kv q̇ within the Panda's torque limits.
+- "sphere" (`SpherePusher`): the paper's simplification, a fully actuated sphere driven by a force.
+- "panda" (`PandaPusher`): the 7-joint Franka Panda of example-robot-data driven by its servos.
 
 State x = (qpos, qvel) of the MuJoCo model; one step of the dynamics is one frame of `dt` seconds
 (`dano.sim.step.step`: substeps with fresh contact wrenches). Costs: the DANO's final position
@@ -16,14 +13,17 @@ Lagrangian): the DANO's final xy on the goal (`goal_as_constraint`, else a cost)
 the end effector above the ground.
 """
 
+import abc
 import dataclasses
 from collections.abc import Callable
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dano.assets import panda
+from dano.scenarios import push_scene
 from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Scene
 from dano.sim.step import mjx_kinematics, scaled_model, step
@@ -36,13 +36,6 @@ PANDA_CONTACT = ("panda_link7", "panda_hand", "panda_leftfinger", "panda_rightfi
 """The Panda links that can touch a tabletop object in the push (the rest stay > 14 cm up)."""
 PANDA_TORQUE = (87.0, 87.0, 87.0, 87.0, 12.0, 12.0, 12.0)
 """The Panda's joint torque limits, N m (Franka's datasheet)."""
-ROBOT_STEP = {"sphere": ("implicit", 8e-3), "panda": ("explicit", 5e-4)}
-"""Each robot's default simulator step for the push: (integrator, step length in s). The sphere
-is solved jointly with the DANO by the implicit step, whose derivatives at ten 8 ms steps per
-0.08 s frame cost about a seventh of the explicit step's 160 substeps of 0.5 ms (a frame's
-Jacobian 51 vs 376 ms, measured beside another job when the default changed). The Panda keeps
-the explicit step: its links are driven by servos and their reactions reach MuJoCo explicitly,
-which longer steps would not keep stable."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,11 +74,188 @@ class PushTask:
     effort_weight: float = 1e-3
 
 
+class PusherModel(NamedTuple):
+    """A pusher as the optimiser sees it in a compiled simulation (state x = (qpos, qvel)).
+
+    Attributes:
+        effector: x -> (end effector position (3,), world, m; its velocity terms).
+        lowest: x -> (k,) heights of the end effector's lowest points, m (kept above the clearance).
+        input_limits: (x, u) -> (c,) constraints <= 0 on the controls.
+        guess: scale -> (T, m) controls of a first guess; `scales` the scales the warm start tries.
+    """
+
+    effector: Callable[[jax.Array], tuple[jax.Array, jax.Array]]
+    lowest: Callable[[jax.Array], jax.Array]
+    input_limits: Callable[[jax.Array, jax.Array], jax.Array]
+    guess: Callable[[float], np.ndarray]
+    scales: np.ndarray
+
+
+class AbstractPusher(abc.ABC):
+    """What the push needs of a robot: where it stands, what holds it still, its controls and limits.
+
+    Attributes:
+        name: "sphere", "panda", ...
+        integrator, substep: its default simulator step for the push (s).
+        goal_as_constraint: whether the DANO's final xy is a constraint (else a cost) by default.
+    """
+
+    name: ClassVar[str]
+    integrator: ClassVar[str]
+    substep: ClassVar[float]
+    goal_as_constraint: ClassVar[bool]
+
+    @abc.abstractmethod
+    def place(self, scene: Scene, dano: DANO, direction: np.ndarray) -> Scene:
+        """The push scene (`dano.scenarios.push_scene`, its sphere behind the object) with this robot
+        in it, placed to push along the unit xy `direction`."""
+
+    @abc.abstractmethod
+    def hold(self) -> jax.Array:
+        """The controls (m,) that hold the robot still; the effort cost is measured from them."""
+
+    def full_ctrl(self, u: jax.Array) -> jax.Array:
+        """MuJoCo's `ctrl` (..., nu) from the optimised controls (..., m)."""
+        return u
+
+    @abc.abstractmethod
+    def model(self, sim: Simulation, task: PushTask, goal: np.ndarray) -> PusherModel:
+        """The robot's effector, limits and first guesses in the compiled `sim` (goal: xy, m)."""
+
+
+class SpherePusher(AbstractPusher):
+    """The paper's simplification: a fully actuated sphere (1 kg, weight compensated) driven by a
+    force (N) along x, y, z, bounded by `PushTask.force_limit`; solved jointly with the DANO by the
+    implicit step."""
+
+    name = "sphere"
+    integrator, substep = "implicit", 8e-3
+    goal_as_constraint = True
+
+    def place(self, scene: Scene, dano: DANO, direction: np.ndarray) -> Scene:
+        return scene
+
+    def hold(self) -> jax.Array:
+        return jnp.zeros(3)
+
+    def model(self, sim: Simulation, task: PushTask, goal: np.ndarray) -> PusherModel:
+        nq = sim.model.nq
+        p = sim.world.prims[0].qpos
+        home = jnp.asarray(sim.scene.primitives[0].pos)
+        radius = float(sim.scene.primitives[0].size[0])
+        vp = _dof(sim, p)
+        direction = goal / np.linalg.norm(goal)
+
+        def effector(x) -> tuple[jax.Array, jax.Array]:  # position and velocity
+            return home + x[p : p + 3], x[nq + vp : nq + vp + 3]
+
+        def lowest(x) -> jax.Array:
+            return (home[2] + x[p + 2] - radius)[None]
+
+        def input_limits(x, u):
+            return jnp.concatenate([u - task.force_limit, -u - task.force_limit])
+
+        def guess(scale) -> np.ndarray:  # push towards the goal for a third, brake for a third
+            T, third = task.horizon, task.horizon // 3
+            u = np.zeros((T, 3))
+            u[:third, :2] = scale * direction
+            u[third : 2 * third, :2] = -0.5 * scale * direction
+            return u
+
+        return PusherModel(effector, lowest, input_limits, guess, np.linspace(0.5, task.force_limit, 16))
+
+
+class PandaPusher(AbstractPusher):
+    """The 7-joint Franka Panda of example-robot-data, its collision meshes touching the DANO through
+    the contact model; controls are the arm's position-servo targets (fingers held), bounded by the
+    joint ranges, with the servo torque kp (target − q) − kv q̇ within the Panda's torque limits.
+    Its links are driven by servos whose reactions reach MuJoCo explicitly, so it keeps the
+    explicit step; the goal is a cost by default: the contact through its hand's faceted hull is
+    too rough near the goal for the augmented Lagrangian to drive the miss below 1e-4 m."""
+
+    name = "panda"
+    integrator, substep = "explicit", 5e-4
+    goal_as_constraint = False
+
+    def place(self, scene: Scene, dano: DANO, direction: np.ndarray) -> Scene:
+        # The hand sweeps sideways (base yaw) about 0.58 m in front of the base: the object sits
+        # beside the hand on the side away from the goal direction, base placed accordingly.
+        reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
+        side = np.array([-direction[1], direction[0]])
+        base = -0.58 * side - (reach + 0.06) * direction
+        yaw = float(np.arctan2(side[1], side[0]))
+        quat = (float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2)))
+        arm = panda(base_pos=(*base, 0.0), qpos=PANDA_HOME, base_quat=quat, contact_bodies=PANDA_CONTACT)
+        return dataclasses.replace(scene, primitives=(), robot=arm)
+
+    def hold(self) -> jax.Array:
+        return jnp.asarray(PANDA_HOME[:7])
+
+    def full_ctrl(self, u: jax.Array) -> jax.Array:
+        fingers = jnp.asarray(PANDA_HOME[7:], dtype=u.dtype)
+        return jnp.concatenate([u, jnp.broadcast_to(fingers, (*u.shape[:-1], 2))], axis=-1)
+
+    def model(self, sim: Simulation, task: PushTask, goal: np.ndarray) -> PusherModel:
+        model, nq, d0 = sim.model, sim.model.nq, sim.data
+        boxes = [link for link in sim.world.links if link.kind == "box"]  # the fingers
+        box_geoms, box_sizes = jnp.asarray([b.geom for b in boxes]), jnp.asarray([b.size for b in boxes])
+        hand = model.body("panda_hand").id
+        assert sim.scene.robot is not None  # the panda's scene
+        kp, kv = sim.scene.robot.kp, sim.scene.robot.kv
+        lo, hi = (jnp.asarray(model.jnt_range[:7, i]) for i in (0, 1))
+        tau = jnp.asarray(PANDA_TORQUE)
+
+        def kinematics(x):
+            return mjx_kinematics(sim.mjx_model, d0.replace(qpos=x[:nq]))
+
+        # the hand's position; its speed enters through the joint velocities
+        def effector(x) -> tuple[jax.Array, jax.Array]:
+            return kinematics(x).xpos[hand], x[nq : nq + 7]
+
+        def lowest(x) -> jax.Array:  # each finger box's lowest corner (|.| smoothed: the boxes start upright)
+            k = kinematics(x)
+            up = k.geom_xmat[box_geoms].reshape(-1, 3, 3)[:, 2, :]
+            return k.geom_xpos[box_geoms, 2] - jnp.sum(jnp.sqrt(up**2 + 1e-6) * box_sizes, axis=1)
+
+        def input_limits(x, u):
+            torque = kp * (u - x[:7]) - kv * x[nq : nq + 7]
+            return jnp.concatenate([u - hi, lo - u, torque - tau, -torque - tau])
+
+        def guess(scale) -> np.ndarray:  # sweep the base yaw towards the goal and hold
+            u = np.tile(np.asarray(PANDA_HOME[:7]), (task.horizon, 1))
+            u[:, 0] = -scale * np.minimum(1.0, np.arange(1, task.horizon + 1) / (0.6 * task.horizon))
+            return u
+
+        return PusherModel(effector, lowest, input_limits, guess, np.linspace(0.05, 1.0, 16))
+
+
+PUSHERS: dict[str, AbstractPusher] = {p.name: p for p in (SpherePusher(), PandaPusher())}
+"""The robots `push_problem` knows by name; any other `AbstractPusher` can be passed itself."""
+ROBOT_STEP = {name: (p.integrator, p.substep) for name, p in PUSHERS.items()}
+"""Each robot's default simulator step for the push: (integrator, step length in s). The sphere
+is solved jointly with the DANO by the implicit step, whose derivatives at ten 8 ms steps per
+0.08 s frame cost about a seventh of the explicit step's 160 substeps of 0.5 ms (a frame's
+Jacobian 51 vs 376 ms, measured beside another job when the default changed)."""
+
+
+def pusher(robot: "str | AbstractPusher") -> AbstractPusher:
+    """The pusher named `robot` ("sphere", "panda"), or `robot` itself.
+
+    Raises:
+        TrajoptError: an unknown name.
+    """
+    if isinstance(robot, AbstractPusher):
+        return robot
+    if robot not in PUSHERS:
+        raise TrajoptError(f"robot must be one of {', '.join(map(repr, PUSHERS))}, got {robot!r}")
+    return PUSHERS[robot]
+
+
 @dataclasses.dataclass(frozen=True)
 class PushProblem:
     """A push ready to solve: the problem, x0, a first guess of the controls, and what they mean."""
 
-    robot: str
+    pusher: AbstractPusher
     task: PushTask
     sim: Simulation
     problem: OptimalControlProblem
@@ -96,29 +266,29 @@ class PushProblem:
     effector: Callable
     """x -> (end effector position (3,), its velocity terms)."""
 
+    @property
+    def robot(self) -> str:
+        return self.pusher.name
+
     def object_position(self, x) -> jax.Array:
         a = self.sim.world.dano_qpos[0]
         return jnp.asarray(x)[..., a : a + 3]
 
     def full_ctrl(self, u) -> jax.Array:
-        return _full_ctrl(self.robot, u)
+        return self.pusher.full_ctrl(u)
 
 
-def _full_ctrl(robot: str, u):
-    if robot == "sphere":
-        return u
-    fingers = jnp.asarray(PANDA_HOME[7:], dtype=u.dtype)
-    return jnp.concatenate([u, jnp.broadcast_to(fingers, (*u.shape[:-1], 2))], axis=-1)
-
-
-def push_problem(dano: DANO, robot: str = "sphere", task: PushTask = PushTask(), friction: float = 0.3) -> PushProblem:
-    """The push of `dano` by `robot` ("sphere" or "panda") as an `OptimalControlProblem`.
+def push_problem(
+    dano: DANO, robot: "str | AbstractPusher" = "sphere", task: PushTask | None = None, friction: float = 0.3
+) -> PushProblem:
+    """The push of `dano` by `robot` ("sphere", "panda" or any `AbstractPusher`) as an
+    `OptimalControlProblem`.
 
     Raises:
         TrajoptError: an unknown robot, a goal too close to push to, a bad horizon or integrator.
     """
-    if robot not in ("sphere", "panda"):
-        raise TrajoptError(f"robot must be 'sphere' or 'panda', got {robot!r}")
+    task = PushTask() if task is None else task
+    robot = pusher(robot)
     if task.horizon < 2:
         raise TrajoptError(f"horizon must be at least 2 frames, got {task.horizon}")
     goal = np.asarray(task.goal, dtype=float)
@@ -127,24 +297,18 @@ def push_problem(dano: DANO, robot: str = "sphere", task: PushTask = PushTask(),
     distance = float(np.linalg.norm(goal))
     if distance < 1e-3:
         raise TrajoptError("the goal is where the object already is: nothing to push")
-    integrator, substep = ROBOT_STEP[robot]
-    integrator = task.integrator or integrator
-    substep = task.substep or (substep if integrator == ROBOT_STEP[robot][0] else 5e-4)
+    integrator = task.integrator or robot.integrator
+    substep = task.substep or (robot.substep if integrator == robot.integrator else 5e-4)
     if integrator not in ("implicit", "explicit") or not substep > 0:
         raise TrajoptError(f"integrator must be 'implicit' or 'explicit', substep > 0; got {integrator!r}, {substep}")
     scene = _scene(dano, robot, goal / distance, friction, task.dt, substep, integrator)
-    sim = _settled(Simulation.from_scene(scene), task.horizon, _full_ctrl(robot, _hold(robot)))
+    sim = _settled(Simulation.from_scene(scene), task.horizon, robot.full_ctrl(robot.hold()))
     return _assemble(robot, task, sim, goal)
 
 
 SETTLE_S = 0.5
 """How long the object is simulated, the robot holding still, before the push starts from where
 it rests (placed just above the table, it comes to rest in that time)."""
-
-
-def _hold(robot: str) -> jax.Array:
-    """The controls that hold the robot still: no force on the sphere, the Panda's servos at home."""
-    return jnp.zeros(3) if robot == "sphere" else jnp.asarray(PANDA_HOME[:7])
 
 
 def _settled(sim: Simulation, horizon: int, hold: jax.Array) -> Simulation:
@@ -170,26 +334,20 @@ def _settled(sim: Simulation, horizon: int, hold: jax.Array) -> Simulation:
 
 
 def _scene(
-    dano: DANO, robot: str, direction: np.ndarray, friction: float, dt: float, substep: float, integrator: str
+    dano: DANO,
+    robot: AbstractPusher,
+    direction: np.ndarray,
+    friction: float,
+    dt: float,
+    substep: float,
+    integrator: str,
 ) -> Scene:
-    from dano.sysid.experiments import push_scene
-
-    scene = push_scene(dano, friction, direction=tuple(direction))
-    if robot == "panda":
-        # The hand sweeps sideways (base yaw) about 0.58 m in front of the base: the object sits
-        # beside the hand on the side away from the goal direction, base placed accordingly.
-        reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
-        side = np.array([-direction[1], direction[0]])
-        base = -0.58 * side - (reach + 0.06) * direction
-        yaw = float(np.arctan2(side[1], side[0]))
-        quat = (float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2)))
-        arm = panda(base_pos=(*base, 0.0), qpos=PANDA_HOME, base_quat=quat, contact_bodies=PANDA_CONTACT)
-        scene = dataclasses.replace(scene, primitives=(), robot=arm)
+    scene = robot.place(push_scene(dano, friction, direction=tuple(direction)), dano, direction)
     scene = dataclasses.replace(scene, timestep=substep, substeps=1, duration=dt, integrator=integrator)
     return at_interval(scene, dt)
 
 
-def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> PushProblem:
+def _assemble(robot: AbstractPusher, task: PushTask, sim: Simulation, goal: np.ndarray) -> PushProblem:
     world, params, model = sim.world, sim.params, sim.model
     m = scaled_model(world, params, sim.mjx_model)
     d0 = sim.data
@@ -197,83 +355,25 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
     x0 = np.concatenate([np.asarray(d0.qpos), np.asarray(d0.qvel)])
     a = world.dano_qpos[0]
     goal_world = np.asarray(d0.qpos)[a : a + 2] + goal
+    pm = robot.model(sim, task, goal)
 
     def dynamics(x, u, t):
-        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=_full_ctrl(robot, u))
+        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=robot.full_ctrl(u))
         d = step(world, params, m, d)
         return jnp.concatenate([d.qpos, d.qvel])
 
-    if robot == "sphere":
-        p = world.prims[0].qpos
-        home = jnp.asarray(sim.scene.primitives[0].pos)
-        radius = float(sim.scene.primitives[0].size[0])
-        vp = _dof(sim, p)
-
-        def effector(x) -> tuple[jax.Array, jax.Array]:  # position and velocity
-            return home + x[p : p + 3], x[nq + vp : nq + vp + 3]
-
-        def lowest(x) -> jax.Array:
-            return (home[2] + x[p + 2] - radius)[None]
-
-        limit = task.force_limit
-        m_u = 3
-
-        def input_limits(x, u):
-            return jnp.concatenate([u - limit, -u - limit])
-
-        def guess(scale) -> np.ndarray:  # push towards the goal for a third, brake for a third
-            T, third = task.horizon, task.horizon // 3
-            u = np.zeros((T, 3))
-            u[:third, :2] = scale * direction_xy
-            u[third : 2 * third, :2] = -0.5 * scale * direction_xy
-            return u
-
-        direction_xy = goal / np.linalg.norm(goal)
-        scales = np.linspace(0.5, task.force_limit, 16)
-    else:
-        boxes = [link for link in sim.world.links if link.kind == "box"]  # the fingers
-        box_geoms, box_sizes = jnp.asarray([b.geom for b in boxes]), jnp.asarray([b.size for b in boxes])
-        hand = model.body("panda_hand").id
-        assert sim.scene.robot is not None  # the panda's scene
-        kp, kv = sim.scene.robot.kp, sim.scene.robot.kv
-        lo, hi = (jnp.asarray(model.jnt_range[:7, i]) for i in (0, 1))
-        tau = jnp.asarray(PANDA_TORQUE)
-        m_u = 7
-
-        def kinematics(x):
-            return mjx_kinematics(sim.mjx_model, d0.replace(qpos=x[:nq]))
-
-        # the hand's position; its speed enters through the joint velocities
-        def effector(x) -> tuple[jax.Array, jax.Array]:
-            return kinematics(x).xpos[hand], x[nq : nq + 7]
-
-        def lowest(x) -> jax.Array:  # each finger box's lowest corner (|.| smoothed: the boxes start upright)
-            k = kinematics(x)
-            up = k.geom_xmat[box_geoms].reshape(-1, 3, 3)[:, 2, :]
-            return k.geom_xpos[box_geoms, 2] - jnp.sum(jnp.sqrt(up**2 + 1e-6) * box_sizes, axis=1)
-
-        def input_limits(x, u):
-            torque = kp * (u - x[:7]) - kv * x[nq : nq + 7]
-            return jnp.concatenate([u - hi, lo - u, torque - tau, -torque - tau])
-
-        def guess(scale) -> np.ndarray:  # sweep the base yaw towards the goal and hold
-            u = np.tile(np.asarray(PANDA_HOME[:7]), (task.horizon, 1))
-            u[:, 0] = -scale * np.minimum(1.0, np.arange(1, task.horizon + 1) / (0.6 * task.horizon))
-            return u
-
-        scales = np.linspace(0.05, 1.0, 16)
-    ee_start = np.asarray(effector(jnp.asarray(x0))[0])
+    ee_start = np.asarray(pm.effector(jnp.asarray(x0))[0])
     ee_goal = ee_start if task.ee_goal is None else np.asarray(task.ee_goal, dtype=float)
     goal_j, ee_goal_j = jnp.asarray(goal_world), jnp.asarray(ee_goal)
     va = _dof(sim, a)
-    reference_u = jnp.zeros(m_u) if robot == "sphere" else jnp.asarray(PANDA_HOME[:7])
-    goal_is_constraint = robot == "sphere" if task.goal_as_constraint is None else task.goal_as_constraint
+    reference_u = robot.hold()
+    goal_is_constraint = robot.goal_as_constraint if task.goal_as_constraint is None else task.goal_as_constraint
 
     def cost(x, u, t):
         return task.effort_weight * jnp.sum((u - reference_u) ** 2)
 
     def terminal_cost(x):
-        ee, ee_vel = effector(x)
+        ee, ee_vel = pm.effector(x)
         v = x[nq + va : nq + va + 6]
         c = task.ee_weight * jnp.sum((ee - ee_goal_j) ** 2) + task.velocity_weight * (v @ v + ee_vel @ ee_vel)
         if not goal_is_constraint:
@@ -281,13 +381,13 @@ def _assemble(robot: str, task: PushTask, sim: Simulation, goal: np.ndarray) -> 
         return c
 
     def constraints(x, u, t):
-        return jnp.concatenate([input_limits(x, u), task.clearance - lowest(x)])
+        return jnp.concatenate([pm.input_limits(x, u), task.clearance - pm.lowest(x)])
 
     terminal = (lambda x: x[a : a + 2] - goal_j) if goal_is_constraint else None
     options = compiler_options(world)
     problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal, options)
-    first = _warm_start(problem, x0, [guess(s) for s in scales], lambda x: x[a : a + 2] - goal_j)
-    return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, effector)
+    first = _warm_start(problem, x0, [pm.guess(s) for s in pm.scales], lambda x: x[a : a + 2] - goal_j)
+    return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, pm.effector)
 
 
 def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss) -> np.ndarray:
@@ -350,10 +450,9 @@ selects and its solver loops run as long as the longest: for the sphere's 200-po
 compile 30.5 s and 0.67 s per expansion vmapped, 21.9 s and 0.20 s one frame at a time)."""
 
 
-def default_options(robot: str) -> Options:
-    """The push's iLQR settings for `robot` (the same for both today: `DEFAULT_OPTIONS`)."""
-    if robot not in ("sphere", "panda"):
-        raise TrajoptError(f"robot must be 'sphere' or 'panda', got {robot!r}")
+def default_options(robot: "str | AbstractPusher") -> Options:
+    """The push's iLQR settings for `robot` (the same for every pusher today: `DEFAULT_OPTIONS`)."""
+    pusher(robot)  # an unknown name is refused
     return DEFAULT_OPTIONS
 
 

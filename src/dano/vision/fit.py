@@ -13,6 +13,7 @@ The box the field lives in is the visual hull's when there are masks: the points
 inside the mask in every view, padded by `margin`. Rays are sampled only inside that box.
 """
 
+import abc
 import dataclasses
 import math
 import time
@@ -28,10 +29,11 @@ from tqdm.auto import tqdm
 
 from dano.errors import DanoError
 from dano.fields import GridField, NeuralField
-from dano.fields.base import Bounds, as_bounds
+from dano.fields.base import AbstractField, Bounds, as_bounds
 from dano.fields.grid import grid_nodes, trilinear
 from dano.fields.neural import NeuralFieldConfig
-from dano.vision.data import Views, camera_rays, project
+from dano.vision.camera import camera_rays, project
+from dano.vision.datasets import Views
 from dano.vision.render import ray_box, render_opacity, render_rgb
 
 
@@ -81,7 +83,21 @@ def cosine_rate(rate: float, progress: Float[Array, ""]) -> Float[Array, ""]:
     return rate * (0.05 + 0.475 * (1.0 + jnp.cos(jnp.pi * progress)))
 
 
-class RadianceField(eqx.Module):
+class AbstractRadiance(eqx.Module):
+    """What `fit_field` trains: optical density (1/m) and diffuse colour in [0, 1] at points (n, 3),
+    world frame; the density alone as a field to build a DANO from; a regulariser for the loss."""
+
+    @abc.abstractmethod
+    def __call__(self, x: Float[Array, "n 3"]) -> tuple[Float[Array, " n"], Float[Array, "n 3"]]: ...
+
+    @abc.abstractmethod
+    def density_field(self) -> AbstractField: ...
+
+    @abc.abstractmethod
+    def regulariser(self) -> Float[Array, ""]: ...
+
+
+class RadianceField(AbstractRadiance):
     """Optical density (a `NeuralField`, 1/m) and diffuse colour in [0, 1] at points (n, 3), world frame."""
 
     density: NeuralField
@@ -101,7 +117,7 @@ class RadianceField(eqx.Module):
         return jnp.zeros((), dtype=bias.dtype)
 
 
-class VoxelRadiance(eqx.Module):
+class VoxelRadiance(AbstractRadiance):
     """Density scale * softplus(raw) and sigmoid(colour) of trilinearly interpolated node values.
 
     The activation comes after the interpolation, so a surface can be sharper than a cell.
@@ -126,7 +142,7 @@ class VoxelRadiance(eqx.Module):
         return cast(Array, sum(jnp.mean(jnp.diff(r, axis=a) ** 2) for a in range(3)))
 
 
-def init_radiance_field(bounds, config: FitConfig, *, key: PRNGKeyArray) -> RadianceField | VoxelRadiance:
+def init_radiance_field(bounds, config: FitConfig, *, key: PRNGKeyArray) -> AbstractRadiance:
     """A model that starts nearly transparent (raw density -4: sigma ~ 2 % of its scale)."""
     lo, hi = np.asarray(bounds, dtype=float)
     spacing = float(np.linalg.norm(hi - lo)) / config.n_samples
@@ -201,7 +217,7 @@ class FitResult:
     """
 
     field: GridField | NeuralField
-    model: RadianceField | VoxelRadiance
+    model: AbstractRadiance
     bounds: np.ndarray
     loss: np.ndarray
     psnr: np.ndarray

@@ -60,7 +60,7 @@ from dano.sysid.problem import (
     own_unknowns,
 )
 from dano.sysid.solve import Identification, identify
-from dano.vision.data import Camera, camera_rays
+from dano.vision.camera import Camera, camera_rays
 from dano.vision.track import Silhouette, TrackConfig, downsample, largest_parts, render_silhouette, track, windows
 
 REFINED = ("camera", "object")
@@ -735,7 +735,8 @@ def identify_mask_files(
     """
     from dano.sim.toml import load_scene
     from dano.sysid.data import TrackFileError, read_tracks
-    from dano.vision.data import load_camera, load_masks
+    from dano.vision.camera import load_camera
+    from dano.vision.media import load_masks
 
     pose_only = {
         "window": config.window is not None, "loss": config.loss != "l2", "orientation": config.orientation != "track",

@@ -42,8 +42,9 @@ from dano.fields import AbstractField
 from dano.fields.grid import as_grid
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul, quat_to_mat
 from dano.surface import field_peak
-from dano.vision.data import Camera, camera_rays
+from dano.vision.camera import Camera, camera_rays
 from dano.vision.fit import cosine_rate
+from dano.vision.media import box_downscale
 from dano.vision.render import render_peak
 
 
@@ -151,16 +152,8 @@ class TrackResult:
 
 def downsample(masks: np.ndarray, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
     """Box-averages masks (n, h, w) by an integer `factor` and scales the camera's intrinsics to match."""
-    if factor == 1:
-        return masks, camera
-    n, h, w = masks.shape
-    h2, w2 = h // factor, w // factor
-    small = masks[:, : h2 * factor, : w2 * factor].reshape(n, h2, factor, w2, factor).mean(axis=(2, 4))
-    scaled = dataclasses.replace(
-        camera, width=w2, height=h2, fx=camera.fx / factor, fy=camera.fy / factor,
-        cx=camera.cx / factor, cy=camera.cy / factor,
-    )  # fmt: skip
-    return small, scaled
+    small = box_downscale(np.moveaxis(masks, 0, -1), factor)  # pixels first, frames as channels
+    return np.moveaxis(small, -1, 0), camera.downscaled(factor)
 
 
 def windows(masks: np.ndarray, margin: float = 0.3) -> tuple[tuple[int, int], np.ndarray]:
