@@ -18,7 +18,8 @@ import dano  # noqa: E402
 from dano.assets import bunny_mesh  # noqa: E402
 from dano.fields import mesh_field  # noqa: E402
 from dano.trajopt import PushTask, push_problem, solve_push  # noqa: E402
-from dano.trajopt.push import ROBOT_STEP, default_options  # noqa: E402
+from dano.trajopt.push import default_options  # noqa: E402
+from dano.trajopt.pushers import ROBOT_STEP  # noqa: E402
 
 
 def main() -> None:

@@ -90,13 +90,12 @@ def test_console_script_runs():
 def test_warnings_print_as_one_line_and_leave_the_filters_alone(monkeypatch, capsys, tmp_path):
     import warnings
 
-    import dano.cli as cli
     from dano.sysid.frames import UnitsWarning
 
     def warns(args):
         warnings.warn("the DANO 'soap' is 90 m long", UnitsWarning, stacklevel=2)
 
-    monkeypatch.setattr(cli, "_info", warns)
+    monkeypatch.setattr("dano.cli.objects._info", warns)
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         before = warnings.showwarning

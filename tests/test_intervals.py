@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from dano.sysid.solve import _flags, profile_bound
+from dano.sysid.intervals import _flags, profile_bound
 
 Q = float(np.sqrt(chi2.ppf(0.95, 1)))  # 1.96
 
@@ -88,7 +88,7 @@ def test_robust_residuals_square_to_the_robust_loss_and_differentiate(loss):
     import jax
     import jax.numpy as jnp
 
-    from dano.sysid.solve import ROBUST_SCALE, robust
+    from dano.sysid.objective import ROBUST_SCALE, robust
     from helpers import central_difference
 
     c = ROBUST_SCALE
@@ -117,8 +117,8 @@ def test_robust_residuals_square_to_the_robust_loss_and_differentiate(loss):
 def test_a_bad_loss_name_is_refused():
     import jax.numpy as jnp
 
+    from dano.sysid.objective import robust
     from dano.sysid.problem import SysidError
-    from dano.sysid.solve import robust
 
     with pytest.raises(SysidError, match="'l2', 'huber' or 'cauchy'"):
         robust(jnp.zeros((1, 6)), "l1")

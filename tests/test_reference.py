@@ -104,7 +104,8 @@ def test_the_command_line_alone_identifies_the_reference_friction_as_python_does
     capsys.readouterr()
     code = main([
         "sysid", str(tmp_path / "scene.toml"), "--traj", str(csv), "--fps", "500", "--frames", "400:601",
-        "--window-frames", "25", "--fit", "friction", "--init", "friction=0.5", "--settle", "0", "--interval", "gauss-newton",
+        "--window-frames", "25", "--fit", "friction", "--init", "friction=0.5", "--settle", "0",
+        "--interval", "gauss-newton",
         "--json",
     ])  # fmt: skip
     assert code == 0

@@ -47,7 +47,7 @@ class SysidConfig:
             0: the data as they are; `make_problem`).
         frames: (first, stop) rows of every file to fit (0-based, stop excluded; None: all).
         interval: "profile" or "gauss-newton" (`identify`).
-        loss: "l2", "huber" or "cauchy" (`identify`, `dano.sysid.solve.robust`).
+        loss: "l2", "huber" or "cauchy" (`identify`, `dano.sysid.objective.robust`).
         orientation: "track" (the files' quaternions), or "resting": the tracker could not resolve
             rotation; the object lies on one of its stable faces (`resting_poses`) at one of
             `YAWS`, the pair that fits best at the initial guess, positions only.
@@ -220,9 +220,10 @@ def _initial_loss(problem: Problem, init: dict, bounds: dict) -> float:
     """½Σr² at the initial guess (for choosing the sign of a fitted gravity axis)."""
     import jax.numpy as jnp
 
-    from dano.sysid.solve import _compiled, initial_guess
+    from dano.sysid.objective import compiled
+    from dano.sysid.solve import initial_guess
 
-    loss_fn, _ = _compiled(problem, "fwd")
+    loss_fn, _ = compiled(problem, "fwd")
     theta = initial_guess(problem, init, bounds)
     value = float(loss_fn(jnp.asarray(theta), jnp.zeros((problem.n_windows, problem.n_state)), problem.windows))
     return value if np.isfinite(value) else np.inf

@@ -1,41 +1,33 @@
-"""Projected Levenberg-Marquardt for Problem (17), with exact Jacobians from JAX.
+"""Identification (paper Problem (17)) by projected Levenberg-Marquardt, with exact Jacobians from JAX.
 
 Why not optimistix' `LevenbergMarquardt`: it has no bounds (a sigmoid reparameterisation makes a
 parameter at its bound, a friction of 0, unreachable and flattens the loss near it) and it takes
 the Jacobian of the whole residual vector with respect to every unknown. With multiple shooting
 and fitted initial states the unknowns are θ plus a few per window, and window i's state touches
 only window i's residuals: here each window is differentiated forward in θ and its own state only
-(`jacfwd` under `vmap`: p + s tangents per window instead of p + n·s), and the normal equations
-are assembled from those blocks. `bench/sysid.py` measures both on the same problem.
-
-The iteration is the reference's (dojo-dano.md §9.3.1) made a little more careful: Gauss-Newton
-Hessian JᵀJ plus a Marquardt term λ·diag(JᵀJ), the step projected onto the bounds with parameters
-held at an active bound dropped from the system, a backtracking (Armijo) line search on the
-projected path, λ divided by 3 after a success and multiplied by 10 after a failure.
+(`dano.sysid.objective`), and the normal equations are assembled from those blocks. The iteration
+is `dano.sysid.lm`; the intervals `dano.sysid.intervals`. `bench/sysid.py` measures both Jacobian
+modes on the same problem.
 """
 
 import dataclasses
 import time
-from collections.abc import Callable
-from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 from scipy.stats import chi2
 from tqdm.auto import tqdm
 
 from dano.results import Result, finish
+from dano.sysid.intervals import Refit, _flags, profile_bound
+from dano.sysid.lm import Objective, Point, Tolerances, levenberg_marquardt, logger
+from dano.sysid.objective import assemble, compiled, robust
 from dano.sysid.problem import (
     DEFAULT_BOUNDS,
     Problem,
     SysidError,
     canonical,
     current_values,
-    over_windows,
-    residuals,
-    window_residuals,
 )
 
 
@@ -107,93 +99,6 @@ class Identification:
             interval={"method": self.interval, "level": self.level}, loss=self.loss, flags=list(self.flags),
             loss_function=self.loss_function, rms_observation=self.rms_observation,
         )  # fmt: skip
-
-
-ROBUST_SCALE = 2.795
-"""σ: where the robust losses start to discount a frame's position (or rotation) error, the 95 %
-quantile of the norm of a 3-vector of unit Gaussian noise (√χ²₃(0.95)): inliers keep their weight."""
-
-
-def robust(r: Float[Array, "... 6"], loss: str, c: float = ROBUST_SCALE) -> Float[Array, "... 6"]:
-    """Residuals whose squares sum to the robust loss: each frame's position and rotation error e
-    (3-vectors, in σ) scaled by √(ρ(|e|²) / |e|²), so ½Σ|r|² = ½Σρ(|e|²) and Gauss-Newton on r is
-    the "square-rooted" robust fit (Triggs et al., Bundle adjustment, §4.3).
-
-    ρ: "l2" u; "huber" u up to c², then 2c√u − c² (linear growth: an outlier pulls with constant
-    force); "cauchy" c² log(1 + u/c²) (an outlier's pull fades). Smooth, with the gradient of the
-    identity at 0.
-    """
-    if loss == "l2":
-        return r
-    e = r.reshape(*r.shape[:-1], 2, 3)
-    u = jnp.sum(e * e, axis=-1, keepdims=True)
-    small = u < 1e-12 * c * c
-    safe = jnp.where(small, c * c, u)  # the double `where`: no NaN gradient at e = 0
-    if loss == "huber":
-        ratio = jnp.where(u <= c * c, 1.0, (2.0 * c * jnp.sqrt(safe) - c * c) / safe)
-    elif loss == "cauchy":
-        ratio = jnp.where(small, 1.0, c * c * jnp.log1p(safe / (c * c)) / safe)
-    else:
-        raise SysidError(f"the loss must be 'l2', 'huber' or 'cauchy', got {loss!r}")
-    return (e * jnp.sqrt(ratio)).reshape(r.shape)
-
-
-def _compiled(problem: Problem, jac: str, loss_name: str = "l2"):
-    """(loss, residuals and normal equations) functions of (θ, δ, windows), jitted once per problem
-    structure. The residuals returned are the plain ones (for the RMS errors); the loss and the
-    normal equations are those of `robust(r, loss_name)`."""
-    key = ("fns", jac, loss_name)
-    if key in problem.cache:
-        return problem.cache[key]
-
-    def loss(theta, delta, windows):
-        r = residuals(problem, theta, delta, windows)
-        r = r if loss_name == "l2" else robust(r, loss_name)  # robust: pose residuals only
-        return 0.5 * jnp.sum(r * r)
-
-    def normal_equations(theta, delta, windows):
-        def one(dl, w):
-            def f(th, d_):
-                plain = window_residuals(problem, th, d_, w).reshape(-1)
-                r = plain if loss_name == "l2" else robust(plain.reshape(-1, 6), loss_name).reshape(-1)
-                return r, (plain, r)
-
-            if jac == "fwd" and theta.shape[0] + dl.shape[0] == 1:  # one tangent: a jvp, nothing batched
-                (r, (plain, _)), (dr, _) = jax.jvp(f, (theta, dl), (jnp.ones_like(theta), jnp.ones_like(dl)))
-                column = dr[:, None]
-                return plain, r, column[:, : theta.shape[0]], column[:, theta.shape[0] :]
-            differentiate = jax.jacfwd if jac == "fwd" else jax.jacrev
-            (Jt, Jd), (plain, r) = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
-            return plain, r, Jt, Jd
-
-        plain, r, Jt, Jd = over_windows(one, delta, windows)
-        return plain, (
-            0.5 * jnp.sum(r * r),
-            jnp.einsum("nm,nmp->p", r, Jt),
-            jnp.einsum("nm,nms->ns", r, Jd),
-            jnp.einsum("nmp,nmq->pq", Jt, Jt),
-            jnp.einsum("nmp,nms->nps", Jt, Jd),
-            jnp.einsum("nms,nmt->nst", Jd, Jd),
-        )
-
-    opts = problem.compiler_options
-    fns = tuple(jax.jit(f, compiler_options=opts) for f in (loss, normal_equations))
-    problem.cache[key] = fns
-    return fns
-
-
-def _assemble(p: int, n: int, s: int, parts) -> tuple[float, np.ndarray, np.ndarray]:
-    """Dense loss, gradient (P,) and Hessian (P, P) over y = (θ, δ₁, …, δₙ) from the blocks."""
-    loss, g_t, g_d, H_tt, H_td, H_dd = (np.asarray(x) for x in parts)
-    P = p + n * s
-    H = np.zeros((P, P))
-    H[:p, :p] = H_tt
-    for i in range(n):
-        sl = slice(p + i * s, p + (i + 1) * s)
-        H[:p, sl] = H_td[i]
-        H[sl, :p] = H_td[i].T
-        H[sl, sl] = H_dd[i]
-    return float(loss), np.concatenate([g_t, g_d.reshape(-1)]), H
 
 
 def by_canonical_name(values: dict | None, names, what: str) -> dict:
@@ -317,31 +222,31 @@ def identify(
     if jac == "auto":
         per_window = problem.n_residuals / max(n, 1)
         jac = "rev" if p + s > per_window else "fwd"
-    loss_fn, normal_fn = _compiled(problem, jac, loss)
+    loss_fn, normal_fn = compiled(problem, jac, loss)
 
     def split(y):
         return jnp.asarray(y[:p]), jnp.asarray(y[p:].reshape(n, s))
 
     def evaluate(y):
         r, parts = normal_fn(*split(y), problem.windows)
-        return (r, *_assemble(p, n, s, parts))
+        return (r, *assemble(p, n, s, parts))
 
     start = time.perf_counter()
-    point = _Point(y, *evaluate(y))
+    point = Point(y, *evaluate(y))
     if not np.isfinite(point.loss):
         raise SysidError("the loss is not finite at the initial guess: the simulation blows up there")
     history = [point.loss]
     bar = tqdm(total=max_steps, desc="sysid", disable=None if progress else True, leave=False)
-    tol = _Tolerances(gtol, ftol, rtol, xtol)
-    objective = _Objective(evaluate, lambda y: float(loss_fn(*split(y), problem.windows)), y_lo, y_hi)
+    tol = Tolerances(gtol, ftol, rtol, xtol)
+    objective = Objective(evaluate, lambda y: float(loss_fn(*split(y), problem.windows)), y_lo, y_hi)
     result, message = Result.max_steps_reached, ""
     # Stage 1 fits θ with the initial states held as read from the data; stage 2 frees them. From a
     # poor θ, fitting states at once can wander into a wrong basin (e.g. a fast spin that mimics low
     # friction); started from stage 1's θ the joint fit stays in the right one.
     stages = [np.arange(y.size) >= p, np.zeros(y.size, bool)] if s else [np.zeros(y.size, bool)]
     for hold in stages:
-        point, result, message = _levenberg_marquardt(
-            point, objective, hold, max_steps - (len(history) - 1), tol, _logger(history, bar)
+        point, result, message = levenberg_marquardt(
+            point, objective, hold, max_steps - (len(history) - 1), tol, logger(history, bar)
         )
     bar.close()
     finish(result, f"identification {result.value}: {message}", throw)
@@ -350,7 +255,7 @@ def identify(
     flags: list[str] = []
     if interval == "profile":
         variance = 2.0 * point.loss / max(problem.n_residuals - y.size, 1)
-        refit = _Refit(point, objective, only_theta=s == 0 and p == 1, tol=tol)
+        refit = Refit(point, objective, only_theta=s == 0 and p == 1, tol=tol)
         bounds_found = []
         for k in range(p):
             deviance = lambda v, k=k: 2.0 * (refit(k, v) - point.loss) / max(variance, 1e-300)  # noqa: E731
@@ -373,198 +278,6 @@ def identify(
         intervals=intervals, interval=interval, level=level, flags=tuple(flags), adjustments=adjustments,
         loss_function=loss,
     )  # fmt: skip
-
-
-class _Refit:
-    """½Σr² minimised over every unknown but θ_k = v (the profile), warm-started from the last
-    refit; with θ alone unknown and one parameter, just the loss at v."""
-
-    def __init__(self, best: "_Point", objective: "_Objective", only_theta: bool, tol: "_Tolerances"):
-        self.best, self.objective, self.only_theta, self.tol = best, objective, only_theta, tol
-        self.last: dict = {}
-
-    def __call__(self, k: int, v: float) -> float:
-        start = self.last.get((k, v > self.best.y[k]), self.best).y.copy()
-        start[k] = v
-        if self.only_theta:
-            return self.objective.loss_at(start)
-        point = _Point(start, *self.objective.evaluate(start))
-        hold = np.zeros(start.size, bool)
-        hold[k] = True
-        point, _, _ = _levenberg_marquardt(point, self.objective, hold, 20, self.tol, lambda point: None)
-        self.last[(k, v > self.best.y[k])] = point
-        return point.loss
-
-
-@dataclasses.dataclass(frozen=True)
-class ProfileBound:
-    """One end of a profile interval: `value`; `at_limit` when the deviance stayed below the
-    threshold up to the bound (the interval is cut there); `lowest`, the smallest deviance met on the
-    way and `lowest_at` where (negative: the profile found a lower loss than the fit)."""
-
-    value: float
-    at_limit: bool
-    lowest: float
-    lowest_at: float
-
-
-def profile_bound(deviance, start: float, direction: int, step: float, limit: float, q: float, evals: int = 16):
-    """Where the signed root deviance √deviance(v) first reaches `q` going from `start` towards `limit`.
-
-    The root deviance of a well-behaved fit is close to linear in v (|v − start| / stderr), so each
-    trial extrapolates to q from the last point inside (growing the step at most 4×), then regula
-    falsi (Illinois) on the bracket, to 1 % of q or of the bracket (an end to ~1 % of the interval's
-    half-width). A rough profile is handled as it is met: the first crossing counts. `deviance(start)` is taken as 0.
-    """
-    step = abs(step) if np.isfinite(step) and step > 0 else 1e-3 * max(abs(limit - start), 1e-6)
-    clip = (lambda v: max(v, limit)) if direction < 0 else (lambda v: min(v, limit))  # noqa: E731
-    inside, z_in = start, 0.0
-    lowest, lowest_at = 0.0, start
-    v = clip(start + direction * step)
-    outside = None
-    for _ in range(evals):
-        dev = float(deviance(v))
-        if dev < lowest:
-            lowest, lowest_at = dev, v
-        z = float(np.sqrt(max(dev, 0.0)))
-        if z >= q:
-            outside = (v, z)
-            break
-        inside, z_in = v, z
-        if v == limit:
-            return ProfileBound(float(limit), True, lowest, lowest_at)
-        grow = 4.0 if z < 0.25 * q else float(np.clip(1.05 * q / z, 1.2, 4.0))
-        v = clip(start + (v - start) * grow)
-    if outside is None:  # never reached q in `evals` trials: the interval is at least this wide
-        return ProfileBound(float(inside), True, lowest, lowest_at)
-    v_out, z_out = outside
-    f_in, f_out, moved = z_in - q, z_out - q, 0  # f < 0 inside; `moved`: the end replaced last
-    for _ in range(evals):
-        if abs(v_out - inside) <= 1e-2 * abs(v_out - start):
-            break
-        v = inside + float(np.clip(f_in / (f_in - f_out), 0.05, 0.95)) * (v_out - inside)
-        dev = float(deviance(v))
-        if dev < lowest:
-            lowest, lowest_at = dev, v
-        f = float(np.sqrt(max(dev, 0.0))) - q
-        if abs(f) < 1e-2 * q:
-            return ProfileBound(float(v), False, lowest, lowest_at)
-        if f >= 0:  # Illinois: an end kept twice has its value halved, so the bracket closes from both sides
-            v_out, f_out, f_in, moved = v, f, f_in * (0.5 if moved > 0 else 1.0), 1
-        else:
-            inside, f_in, f_out, moved = v, f, f_out * (0.5 if moved < 0 else 1.0), -1
-    v = inside + float(np.clip(f_in / (f_in - f_out), 0.0, 1.0)) * (v_out - inside)
-    return ProfileBound(float(v), False, lowest, lowest_at)
-
-
-def _flags(name: str, estimate: float, stderr: float, q: float, sides: list[ProfileBound]) -> list[str]:
-    """What a reader of (estimate, stderr) would get wrong, from the two ends of the profile."""
-    out = []
-    for side, bound in zip(("low", "high"), sides, strict=True):
-        if bound.lowest < -1e-6:
-            out.append(
-                f"{name}: the profile found a lower loss at {bound.lowest_at:.6g} than at the estimate "
-                f"{estimate:.6g}: the fit stopped in a local minimum"
-            )
-        if bound.at_limit:
-            out.append(f"{name}: the {side} end of the interval is cut at {bound.value:.6g} (a bound or the search)")
-            continue
-        width, gn = abs(bound.value - estimate), q * stderr
-        if not (0.5 <= width / max(gn, 1e-300) <= 2.0):
-            out.append(
-                f"{name}: the Gauss-Newton stderr {stderr:.3g} is {'too small' if width > gn else 'too large'}: "
-                f"the profile's {side} end is {width:.3g} from the estimate, {width / max(gn, 1e-300):.3g} times "
-                f"the {q:.3g} stderr it predicts; trust the interval"
-            )
-    return out
-
-
-@dataclasses.dataclass(frozen=True)
-class _Point:
-    """An iterate: unknowns y, residuals r, loss ½|r|², gradient g = Jᵀr and Hessian H = JᵀJ."""
-
-    y: np.ndarray
-    r: object
-    loss: float
-    g: np.ndarray
-    H: np.ndarray
-
-
-class _Objective(NamedTuple):
-    """The loss as LM sees it: `evaluate(y)` -> (r, loss, g, H); `loss_at(y)` the loss alone; the
-    bounds (y_lo, y_hi) the unknowns never leave."""
-
-    evaluate: Callable
-    loss_at: Callable[[np.ndarray], float]
-    y_lo: np.ndarray
-    y_hi: np.ndarray
-
-
-class _Tolerances(NamedTuple):
-    """`identify`'s stopping tests (see its docstring)."""
-
-    gtol: float
-    ftol: float
-    rtol: float
-    xtol: float
-
-
-def _logger(history: list[float], bar) -> Callable[["_Point"], None]:
-    """Records an accepted iterate's loss and shows it."""
-
-    def log(point: "_Point") -> None:
-        history.append(point.loss)
-        bar.update(1)
-        bar.set_postfix(loss=f"{point.loss:.4g}")
-
-    return log
-
-
-def _levenberg_marquardt(
-    point: _Point, objective: _Objective, hold: np.ndarray, max_steps: int, tol: _Tolerances, log: Callable
-) -> tuple[_Point, Result, str]:
-    """Projected LM iterations from `point` with the unknowns in `hold` fixed; `log` sees every
-    accepted iterate. Returns the last iterate, how it stopped and which test stopped it."""
-    lam = 1e-3
-    y_lo, y_hi = objective.y_lo, objective.y_hi
-    for _ in range(max(max_steps, 0)):
-        y, g = point.y, point.g
-        free = ~(hold | (y <= y_lo) & (g > 0) | (y >= y_hi) & (g < 0))
-        if np.max(np.abs(g[free]), initial=0.0) <= tol.gtol * max(point.loss, 1e-300):
-            return point, Result.successful, "gradient below gtol"
-        accepted = False
-        while not accepted and lam < 1e12:
-            step = _lm_step(point.H, g, free, lam)
-            for alpha in (1.0, 1 / 3, 1 / 9, 1 / 27):
-                y_try = np.clip(y + alpha * step, y_lo, y_hi)
-                loss_try = objective.loss_at(y_try)
-                if np.isfinite(loss_try) and loss_try <= point.loss + 1e-4 * g @ (y_try - y):
-                    accepted = True
-                    break
-            lam = lam / 3 if accepted else lam * 10
-        if not accepted:
-            return point, Result.successful, "no decrease along the LM direction (a minimum to working precision)"
-        previous = point
-        point = _Point(y_try, *objective.evaluate(y_try))
-        log(point)
-        if previous.loss - point.loss <= max(tol.rtol * previous.loss, tol.ftol):
-            return point, Result.successful, "loss decrease below ftol"
-        if np.all(np.abs(y_try - y) <= tol.xtol * (np.abs(y_try) + tol.xtol)):
-            return point, Result.successful, "step below xtol"
-    return point, Result.max_steps_reached, "iteration limit"
-
-
-def _lm_step(H: np.ndarray, g: np.ndarray, free: np.ndarray, lam: float) -> np.ndarray:
-    """Solves (H + λ diag H) Δ = −g over the free unknowns (the others stay put)."""
-    Hf = H[np.ix_(free, free)]
-    d = np.diag(Hf).copy()
-    d = np.maximum(d, 1e-12 * max(float(np.max(d, initial=0.0)), 1e-300))
-    step = np.zeros_like(g)
-    try:
-        step[free] = np.linalg.solve(Hf + lam * np.diag(d), -g[free])
-    except np.linalg.LinAlgError:
-        step[free] = -np.linalg.lstsq(Hf + lam * np.diag(d), g[free], rcond=None)[0]
-    return step
 
 
 def _stderr(H: np.ndarray, loss: float, problem: Problem, p: int) -> list[float]:

@@ -1,0 +1,7 @@
+"""`python -m dano.cli`."""
+
+import sys
+
+from dano.cli import main
+
+sys.exit(main())
