@@ -16,6 +16,7 @@ import trimesh
 
 import dano
 from dano.baselines import compare as C
+from dano.baselines import models as M
 from dano.baselines.mesh import clean_mesh, convex_decomposition, level_set_mesh
 from dano.errors import MeshError
 from dano.fields import BoxField, CallableField
@@ -60,9 +61,9 @@ def test_decompositions_are_cached_and_vhacd_works(tmp_path):
 
 
 def test_low_level_rests_tilted_on_the_floater_while_the_dano_rests_flat(tmp_path):
-    models = C.level_set_models(FIELD, [10.0, 500.0], resolution=60, threshold=0.1, cache_dir=tmp_path, progress=False)
-    models.append(C.dano_model("DANO", dano.build_dano(FIELD, n_points=3000, mass=0.5)))
-    truth = C.mesh_model("truth", trimesh.creation.box(SIZE))
+    models = M.level_set_models(FIELD, [10.0, 500.0], resolution=60, threshold=0.1, cache_dir=tmp_path, progress=False)
+    models.append(M.dano_model("DANO", dano.build_dano(FIELD, n_points=3000, mass=0.5)))
+    truth = M.mesh_model("truth", trimesh.creation.box(SIZE))
     result = C.compare(models, truth)
     low, high, ours = result.rows
     assert result.truth_outcome is not None
@@ -101,7 +102,7 @@ def test_cli_compare_on_an_analytic_box(tmp_path, capsys):
 
 
 def test_the_authors_level_3_decomposition_is_read_as_145_convex_pieces(dojo):
-    from dano.baselines.compare import _obj_groups
+    from dano.baselines.models import _obj_groups
 
     pieces = _obj_groups(dojo / "meshes" / "levelsets" / "bluesoap_level_3_decomposed.obj")
     assert len(pieces) == 145

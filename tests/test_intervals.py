@@ -118,7 +118,7 @@ def test_a_bad_loss_name_is_refused():
     import jax.numpy as jnp
 
     from dano.sysid.objective import robust
-    from dano.sysid.problem import SysidError
+    from dano.sysid.params import SysidError
 
     with pytest.raises(SysidError, match="'l2', 'huber' or 'cauchy'"):
         robust(jnp.zeros((1, 6)), "l1")

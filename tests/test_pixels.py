@@ -14,16 +14,16 @@ from dano.sim import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.problem import residuals
 from dano.vision import camera_from_fov, look_at
-from dano.vision.pixels import (
+from dano.vision.observation import (
     MaskConfig,
     MaskError,
     MaskTargets,
     PixelObservation,
     blurred,
     gaussian_blur,
-    mask_problem,
     simulated_silhouettes,
 )
+from dano.vision.pixels import mask_problem
 
 SIZE = (0.09, 0.06, 0.03)
 FPS = 120.0
@@ -287,7 +287,7 @@ def test_windows_follow_the_object_not_stray_pixels():
 def test_half_turn_flips_of_a_tracked_box_are_undone():
     from scipy.spatial.transform import Rotation
 
-    from dano.vision.pixels import unflipped
+    from dano.vision.start import unflipped
 
     def wxyz(r):
         x, y, z, w = r.as_quat().T
@@ -307,7 +307,7 @@ def test_a_start_tracked_too_near_or_far_is_put_on_the_ground_along_the_rays():
     """Depth is what a silhouette fixes worst: a tracked centre off along its camera ray (a
     dilated mask reads nearer) comes back onto the ground where it crosses the resting height, not
     straight down; a body tracked well above the ground, or a scene with no ground, is left alone."""
-    from dano.vision.pixels import _along_rays
+    from dano.vision.start import _along_rays
 
     scene = _scene(0.3)
     obj = scene.bodies[0].dano

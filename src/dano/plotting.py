@@ -89,7 +89,7 @@ def plot_masks(problem, result, path: str | Path, n_frames: int = 8) -> Path:
     difference (red: mask only, blue: silhouette only), each over the frame's window; and the loss
     per iteration.
     """
-    from dano.vision.pixels import PixelObservation, simulated_silhouettes
+    from dano.vision.observation import PixelObservation, simulated_silhouettes
 
     observation = problem.observation
     if not isinstance(observation, PixelObservation):

@@ -12,7 +12,7 @@ from dano.scenarios import PUSHER, push_plan
 from dano.sim.compile import add_primitive
 from dano.sim.scene import DanoBody, Primitive, Scene
 from dano.sysid.experiments import push_recording
-from dano.sysid.problem import Recording
+from dano.sysid.windows import Recording
 
 
 def mesh_push_recordings(

@@ -184,6 +184,7 @@ def _add_compare(sub) -> None:
 
 def _compare(args: argparse.Namespace) -> None:
     from dano.baselines import compare as C
+    from dano.baselines import models as M
 
     scenarios = C.Scenarios(
         friction=args.friction, drop_s=args.drop_seconds, slide_speed=args.slide_speed, push_speed=args.push_speed
@@ -194,10 +195,10 @@ def _compare(args: argparse.Namespace) -> None:
         "max_hulls": args.max_hulls,
         "max_faces": args.max_faces,
     }
-    if args.source in C.REFERENCE_LEVELS and not Path(args.source).exists():
+    if args.source in M.REFERENCE_LEVELS and not Path(args.source).exists():
         if args.data_dir is None:
-            raise C.CompareError(f"{args.source} is reference data: give --data-dir (the folder with colliders/)")
-        models, dano_model = C.reference_models(args.source, args.data_dir, **knobs)
+            raise M.CompareError(f"{args.source} is reference data: give --data-dir (the folder with colliders/)")
+        models, dano_model = M.reference_models(args.source, args.data_dir, **knobs)
         models.append(dano_model)
         truth = dano_model  # no better truth for a scanned object: the authors' own DANO
     else:
@@ -219,7 +220,7 @@ def _compare(args: argparse.Namespace) -> None:
 def _field_models(args: argparse.Namespace, knobs: dict):
     import time
 
-    from dano.baselines import compare as C
+    from dano.baselines import models as M
     from dano.build import build_dano, field_from_source
     from dano.fields import MESH_SUFFIXES, load_mesh, mesh_field
     from dano.surface import field_peak
@@ -228,15 +229,15 @@ def _field_models(args: argparse.Namespace, knobs: dict):
     truth = None
     if args.source.lower().endswith(MESH_SUFFIXES):
         mesh = load_mesh(args.source, repair=args.repair, scale=args.scale)
-        truth = C.mesh_model("truth (mesh)", mesh, progress=True, **knobs)
+        truth = M.mesh_model("truth (mesh)", mesh, progress=True, **knobs)
         field = mesh_field(mesh, resolution=args.resolution)
     else:
         field = field_from_source(args.source, scale=args.scale, resolution=args.resolution)
         if isinstance(field, DANO):
-            raise C.CompareError("compare needs the field the DANO comes from (a mesh, grid, checkpoint or spec)")
+            raise M.CompareError("compare needs the field the DANO comes from (a mesh, grid, checkpoint or spec)")
     levels = _parse_levels(args.levels, field_peak(field, args.seed))
-    models = C.level_set_models(field, levels, args.resolution, clean=args.clean, **knobs)
+    models = M.level_set_models(field, levels, args.resolution, clean=args.clean, **knobs)
     start = time.perf_counter()
     dano = build_dano(field, n_points=args.points, seed=args.seed)
-    models.append(C.dano_model("DANO", dano, time.perf_counter() - start))
+    models.append(M.dano_model("DANO", dano, time.perf_counter() - start))
     return models, truth

@@ -153,7 +153,8 @@ def _sysid(args: argparse.Namespace) -> None:
             plot_identification(problem, result, args.plot)
     else:
         from dano.plotting import plot_masks
-        from dano.vision.pixels import MaskConfig, identify_mask_files
+        from dano.vision.observation import MaskConfig
+        from dano.vision.pixels import identify_mask_files
 
         if args.camera is None:
             raise DanoError("--masks needs the camera that filmed them: --camera CAMERA.json")

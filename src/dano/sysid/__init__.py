@@ -9,17 +9,10 @@ from dano.sysid.data import (
     to_metric,
     write_track,
 )
-from dano.sysid.problem import (
-    DEFAULT_BOUNDS,
-    Problem,
-    Recording,
-    SysidError,
-    canonical,
-    make_problem,
-    residuals,
-    simulate_windows,
-)
+from dano.sysid.params import DEFAULT_BOUNDS, SysidError, canonical
+from dano.sysid.problem import Problem, make_problem, residuals, simulate_windows
 from dano.sysid.solve import Identification, identify
+from dano.sysid.windows import Recording
 
 __all__ = [
     "DEFAULT_BOUNDS", "Identification", "Problem", "Recording", "SysidError", "Track", "TrackFileError", "canonical",

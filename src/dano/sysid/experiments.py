@@ -20,7 +20,8 @@ from dano.sim.run import Simulation, body_poses, compiler_options
 from dano.sim.scene import Scene
 from dano.sim.step import rollout
 from dano.sysid.data import Track
-from dano.sysid.problem import Recording, with_values
+from dano.sysid.params import with_values
+from dano.sysid.windows import Recording
 
 
 def slide_track(

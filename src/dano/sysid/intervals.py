@@ -1,10 +1,12 @@
-"""Profile-likelihood intervals: each parameter held at trial values while everything else is
-refitted (`Refit`), the deviance followed out to the χ² quantile on each side (`profile_bound`),
-and what the numbers do not say flagged (`_flags`)."""
+"""Confidence intervals of identified parameters: θ ± z·stderr (`gauss_newton_intervals`), or the
+profile likelihood (`profile_intervals`): each parameter held at trial values while everything else
+is refitted (`Refit`), the deviance followed out to the χ² quantile on each side
+(`profile_bound`), and what the numbers do not say flagged (`_flags`)."""
 
 import dataclasses
 
 import numpy as np
+from scipy.stats import chi2
 
 from dano.sysid.lm import Objective, Point, Tolerances, levenberg_marquardt
 
@@ -111,3 +113,34 @@ def _flags(name: str, estimate: float, stderr: float, q: float, sides: list[Prof
                 f"the {q:.3g} stderr it predicts; trust the interval"
             )
     return out
+
+
+Fit = tuple[Objective, Tolerances, int, bool]
+"""What a refit needs: the objective, the tolerances, the residuals' count N, and whether θ is the
+one unknown (then the profile is the loss itself, no refit)."""
+
+
+def gauss_newton_intervals(point: Point, fit: Fit, labels, stderr, lo, hi, level: float):
+    """θ ± z·stderr at `level`, clipped to the bounds (lo, hi); no flags."""
+    q = float(np.sqrt(chi2.ppf(level, 1)))
+    intervals = {
+        lab: (max(float(t - q * e), float(lo[k])), min(float(t + q * e), float(hi[k])))
+        for k, (lab, t, e) in enumerate(zip(labels, point.y[: len(labels)], stderr, strict=True))
+    }
+    return intervals, []
+
+
+def profile_intervals(point: Point, fit: Fit, labels, stderr, lo, hi, level: float):
+    """Each parameter's profile-likelihood interval at `level` (where ½Σr² refitted with the
+    parameter held rises by ½ χ²₁(level) · s², s² the residual variance), and the flags."""
+    objective, tol, n_residuals, only_theta = fit
+    q = float(np.sqrt(chi2.ppf(level, 1)))
+    variance = 2.0 * point.loss / max(n_residuals - point.y.size, 1)
+    refit = Refit(point, objective, only_theta=only_theta, tol=tol)
+    found, flags = [], []
+    for k in range(len(labels)):
+        deviance = lambda v, k=k: 2.0 * (refit(k, v) - point.loss) / max(variance, 1e-300)  # noqa: E731
+        sides = [profile_bound(deviance, point.y[k], d, q * stderr[k], (lo[k], hi[k])[d > 0], q) for d in (-1, 1)]
+        found.append((sides[0].value, sides[1].value))
+        flags += _flags(labels[k], point.y[k], stderr[k], q, sides)
+    return dict(zip(labels, found, strict=True)), flags

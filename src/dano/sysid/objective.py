@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano.sysid.problem import Problem, SysidError, over_windows, residuals, window_residuals
+from dano.sysid.params import SysidError
+from dano.sysid.problem import Problem, over_windows, residuals, window_residuals
 
 ROBUST_SCALE = 2.795
 """σ: where the robust losses start to discount a frame's position (or rotation) error, the 95 %

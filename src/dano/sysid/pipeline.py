@@ -19,8 +19,10 @@ from dano.sysid.frames import (
     warn_implausible_units,
     with_gravity,
 )
-from dano.sysid.problem import Problem, Recording, SysidError, canonical, make_problem, named_after_scene
+from dano.sysid.params import SysidError, canonical
+from dano.sysid.problem import Problem, make_problem, named_after_scene
 from dano.sysid.solve import Identification, identify
+from dano.sysid.windows import Recording
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,20 +15,14 @@ import time
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.stats import chi2
 from tqdm.auto import tqdm
 
 from dano.results import Result, finish
-from dano.sysid.intervals import Refit, _flags, profile_bound
+from dano.sysid.intervals import gauss_newton_intervals, profile_intervals
 from dano.sysid.lm import Objective, Point, Tolerances, levenberg_marquardt, logger
 from dano.sysid.objective import assemble, compiled, robust
-from dano.sysid.problem import (
-    DEFAULT_BOUNDS,
-    Problem,
-    SysidError,
-    canonical,
-    current_values,
-)
+from dano.sysid.params import DEFAULT_BOUNDS, SysidError, canonical, current_values
+from dano.sysid.problem import Problem
 
 
 @dataclasses.dataclass(frozen=True)
@@ -251,23 +245,10 @@ def identify(
     bar.close()
     finish(result, f"identification {result.value}: {message}", throw)
     stderr = _stderr(point.H, point.loss, problem, p)
-    q = float(np.sqrt(chi2.ppf(level, 1)))
-    flags: list[str] = []
-    if interval == "profile":
-        variance = 2.0 * point.loss / max(problem.n_residuals - y.size, 1)
-        refit = Refit(point, objective, only_theta=s == 0 and p == 1, tol=tol)
-        bounds_found = []
-        for k in range(p):
-            deviance = lambda v, k=k: 2.0 * (refit(k, v) - point.loss) / max(variance, 1e-300)  # noqa: E731
-            sides = [profile_bound(deviance, point.y[k], d, q * stderr[k], (lo[k], hi[k])[d > 0], q) for d in (-1, 1)]
-            bounds_found.append((sides[0].value, sides[1].value))
-            flags += _flags(labels[k], point.y[k], stderr[k], q, sides)
-        intervals = dict(zip(labels, bounds_found, strict=True))
-    else:
-        intervals = {
-            lab: (max(float(t - q * e), float(lo[k])), min(float(t + q * e), float(hi[k])))
-            for k, (lab, t, e) in enumerate(zip(labels, point.y[:p], stderr, strict=True))
-        }
+    fit = objective, tol, problem.n_residuals, s == 0 and p == 1
+    intervals, flags = (profile_intervals if interval == "profile" else gauss_newton_intervals)(
+        point, fit, labels, stderr, lo, hi, level
+    )
     seconds = time.perf_counter() - start
     theta, delta = point.y[:p], point.y[p:].reshape(n, s)
     return Identification(

@@ -19,7 +19,8 @@ from dano.vision.camera import (
 from dano.vision.datasets import Views, load_nerf_synthetic
 from dano.vision.fit import FitConfig, fit_field
 from dano.vision.media import box_downscale, colour_key_masks, load_frames, load_masks, read_image, read_mask
-from dano.vision.pixels import MaskConfig, identify_mask_files, identify_masks
+from dano.vision.observation import MaskConfig
+from dano.vision.pixels import identify_mask_files, identify_masks
 from dano.vision.synthetic import bounding_sphere, framing_distance, render_mesh_video, render_views, sphere_cameras
 from dano.vision.track import TrackConfig, track
 

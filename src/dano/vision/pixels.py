@@ -34,273 +34,34 @@ import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
-from dano.errors import DanoError
 from dano.fields import AbstractField
-from dano.fields.base import Bounds, CallableField, as_bounds
 from dano.fields.grid import GridField
-from dano.math import quat_conj, quat_exp, quat_mul, quat_to_mat, smootherstep
 from dano.sim.scene import DanoBody, Scene
 from dano.sysid.data import Track
 from dano.sysid.frames import scene_dano
+from dano.sysid.params import SysidError
 from dano.sysid.pipeline import SysidConfig, canonical_fit
-from dano.sysid.problem import (
-    AbstractObservation,
-    Problem,
-    Recording,
-    SysidError,
-    Windows,
-    make_problem,
-    own_unknowns,
-)
+from dano.sysid.problem import Problem, make_problem, own_unknowns
 from dano.sysid.solve import Identification, identify
+from dano.sysid.windows import Recording
 from dano.vision.camera import Camera, camera_rays
-from dano.vision.track import Silhouette, TrackConfig, downsample, largest_parts, render_silhouette, track, windows
-
-REFINED = ("camera", "object")
-"""What `MaskConfig.refine` may name: the camera's extrinsics, the field's pose in the DANO's frame."""
-
-
-class MaskError(DanoError):
-    """Masks that cannot be fitted: another size than the camera's, too few frames, none visible."""
-
-
-class MaskTargets(eqx.Module):
-    """A window's per-frame view of the masks: the rays of each frame's pixel window and the mask
-    there (frames 1..W of the window; a leading window axis in `Windows.observed`)."""
-
-    origins: Float[Array, "*n w r k 3"]
-    """The k = supersample² rays through each pixel (world)."""
-    directions: Float[Array, "*n w r k 3"]
-    uv: Float[Array, "*n w r 2"]
-    """Pixel centres in image-size units (0..1), for the barycentres."""
-    mask: Float[Array, "*n w r"]
-    blur_rows: Float[Array, "*n a a"]
-    """The residual image's blur down its columns, then along its rows (`blurred`; identities: none)."""
-    blur_cols: Float[Array, "*n b b"]
-    correction: Float[Array, "*n 12"]
-    """The camera's and the object frame's corrections fitted so far (`PixelObservation.moved`):
-    camera rotation vector (about its centre, world) and translation, then the field's rotation
-    vector (about the centre of mass, body frame) and translation (body frame); zeros: none."""
-
-
-def gaussian_blur(n: int, width: float) -> Float[np.ndarray, "n n"]:
-    """(n, n) rows of a Gaussian of standard deviation `width` pixels, each summing to 1 over the
-    window (0: the identity)."""
-    if width <= 0:
-        return np.eye(n)
-    k = np.arange(n)
-    g = np.exp(-0.5 * ((k[:, None] - k[None, :]) / width) ** 2)
-    return g / g.sum(axis=1, keepdims=True)
-
-
-def blurred(problem: Problem, width: float) -> Problem:
-    """The problem with its pixel residuals blurred by a Gaussian of `width` window pixels (0: none).
-
-    The residual of a hard-edged silhouette has a Jacobian only within its edge's ramp (a pixel),
-    so a Gauss-Newton step moves a misplaced silhouette by about a pixel per iteration; blurred by
-    a few pixels, the residual's Jacobian reaches as far, and steps as long. Same shapes: the
-    problem's compiled functions are reused."""
-    observation, observed = problem.observation, problem.windows.observed
-    if not (isinstance(observation, PixelObservation) and isinstance(observed, MaskTargets)):
-        raise SysidError("blurred needs a problem fitted to masks (mask_problem)")
-    if not (np.isfinite(width) and width >= 0):
-        raise MaskError(f"the blur width must be a non-negative number of pixels, got {width}")
-    rows, cols = observation.shape
-    targets = dataclasses.replace(
-        observed,
-        blur_rows=jnp.asarray(gaussian_blur(rows, width))[None],
-        blur_cols=jnp.asarray(gaussian_blur(cols, width))[None],
-    )
-    return dataclasses.replace(problem, windows=dataclasses.replace(problem.windows, observed=targets))
-
-
-class PixelObservation(AbstractObservation):
-    """Object masks as the observation of one DANO: residuals of its rendered silhouette (module
-    docstring).
-
-    Attributes:
-        field: the object's density in its own frame (the DANO's frame), read as occupancy φ / peak.
-        peak: the field's fully-inside density.
-        centre, radius: the field's bounding sphere in its frame (m): the rays' sampled interval.
-        n_samples: samples per ray through the sphere.
-        qpos: where the observed DANO's free joint starts in qpos.
-        com: (3,) its centre of mass in its frame (qpos holds the centre of mass's position).
-        sigma: opacity noise: residuals are in units of it.
-        barycentre_weight: w, as the tracker's.
-        n_rays: R, pixels per frame's window.
-        shape: (rows, columns) of every frame's window (rows · columns = R).
-        eye: (3,) the camera's centre, world (what a camera correction turns about).
-        refine: what is fitted with θ besides the initial state, in this order: "camera" (its
-            extrinsics: rotation vector about its centre and translation, world, 6) and "object" (the
-            field's pose in the DANO's frame: rotation vector about the centre of mass and
-            translation, 6); small corrections within `limits`.
-        limits: (rotation, rad; translation, m) bounds on every component of those corrections.
-    """
-
-    field: AbstractField
-    peak: float = eqx.field(static=True)
-    centre: Float[Array, " 3"]
-    radius: float = eqx.field(static=True)
-    n_samples: int = eqx.field(static=True)
-    qpos: int = eqx.field(static=True)
-    com: Float[Array, " 3"]
-    sigma: float = eqx.field(static=True)
-    barycentre_weight: float = eqx.field(static=True)
-    n_rays: int = eqx.field(static=True)
-    shape: tuple[int, int] = eqx.field(static=True)
-    eye: Float[Array, " 3"]
-    refine: tuple[str, ...] = eqx.field(static=True, default=())
-    limits: tuple[float, float] = eqx.field(static=True, default=(0.05, 0.02))
-
-    @property
-    def per_frame(self) -> int:
-        return self.n_rays + 2
-
-    @property
-    def n_params(self) -> int:
-        return 6 * len(self.refine)
-
-    def param_bounds(self, observed: MaskTargets) -> tuple[np.ndarray, np.ndarray]:
-        """Each correction's total (what `observed` holds plus the unknowns) within `limits`."""
-        limit = np.tile(np.repeat(np.asarray(self.limits, dtype=float), 3), 2)
-        total = np.asarray(observed.correction)
-        return (-limit - total)[:, self._columns], (limit - total)[:, self._columns]
-
-    @property
-    def _columns(self) -> np.ndarray:
-        """Where the unknowns sit in the 12 corrections (`MaskTargets.correction`)."""
-        return np.array([6 * REFINED.index(r) + k for r in self.refine for k in range(6)], dtype=int)
-
-    def moved(self, observed: MaskTargets, params: Float[Array, " m"]) -> MaskTargets:
-        """`observed` with the unknowns `params` added to its corrections (one window)."""
-        full = jnp.zeros(12, params.dtype).at[self._columns].set(params)
-        return dataclasses.replace(observed, correction=observed.correction + full)
-
-    def field_poses(self, qpos: Float[Array, "w nq"], correction: Float[Array, " 12"]):
-        """The field frame's origin (w, 3) and orientation (w, 4) as the given camera would see it.
-
-        The field sits in the DANO's frame at the object correction (rotation R_o about the centre
-        of mass, translation t_o): x_dano = com + R_o (x_field − com) + t_o. A camera moved by
-        (R_c about its centre c, then t_c) sees what the given camera sees of the world moved by the
-        inverse, x ↦ c + R_cᵀ (x − c − t_c): that is applied to the field's pose.
-        """
-        pos, quat = qpos[:, self.qpos : self.qpos + 3], qpos[:, self.qpos + 3 : self.qpos + 7]
-        camera_rot, camera_shift = quat_exp(correction[0:3]), correction[3:6]
-        object_rot, object_shift = quat_exp(correction[6:9]), correction[9:12]
-        local = object_shift - quat_to_mat(object_rot) @ self.com  # the field's origin, DANO frame about the com
-        origin = pos + jnp.einsum("wij,j->wi", quat_to_mat(quat), local)
-        quat = quat_mul(quat, object_rot[None])
-        inverse = quat_to_mat(camera_rot).T
-        eye = self.eye[None, :]
-        origin = eye + (origin - eye - camera_shift[None, :]) @ inverse.T
-        return origin, quat_mul(quat_conj(camera_rot)[None], quat)
-
-    def silhouettes(
-        self, qpos: Float[Array, "w nq"], observed: MaskTargets, params: Float[Array, " m"] | None = None
-    ) -> Float[Array, "w r"]:
-        """The rendered opacity of the DANO at each frame's pose, over the frame's window."""
-        if params is not None:
-            observed = self.moved(observed, params)
-        origin, quat = self.field_poses(qpos, observed.correction)
-
-        def frame(p, q, origins, directions, uv):  # each pixel's opacity: the mean over its rays
-            r, k = directions.shape[:2]
-            rays = (origins.reshape(r * k, 3), directions.reshape(r * k, 3), jnp.repeat(uv, k, axis=0))
-            s = Silhouette(*rays, self.field, self.peak, self.centre, self.radius, self.n_samples)
-            return jnp.mean(render_silhouette(s, p, q).reshape(r, k), axis=1)
-
-        return jax.vmap(jax.checkpoint(frame))(origin, quat, observed.origins, observed.directions, observed.uv)
-
-    def residuals(
-        self, qpos: Float[Array, "w nq"], observed: MaskTargets, params: Float[Array, " m"]
-    ) -> Float[Array, "w k"]:
-        opacity = self.silhouettes(qpos, observed, params)
-        shift = jax.vmap(_barycentre)(opacity, observed.uv) - jax.vmap(_barycentre)(observed.mask, observed.uv)
-        scale = float(np.sqrt(self.n_rays * self.barycentre_weight))
-        image = (opacity - observed.mask).reshape(-1, *self.shape)
-        image = jnp.einsum("ij,wjk,lk->wil", observed.blur_rows, image, observed.blur_cols)
-        difference = image.reshape(opacity.shape)
-        return jnp.concatenate([difference, scale * shift], axis=1) / self.sigma
-
-    def rms(self, r: np.ndarray, windows: Windows) -> float:
-        """Root mean square opacity error over the frames that have a mask."""
-        frames = np.asarray(windows.mask) > 0
-        return float(np.sqrt(np.mean((r[..., : self.n_rays][frames] * self.sigma) ** 2)))
-
-
-def _barycentre(image: Float[Array, " r"], uv: Float[Array, "r 2"]) -> Float[Array, " 2"]:
-    return jnp.sum(image[:, None] * uv, axis=0) / (jnp.sum(image) + 1e-6)
-
-
-@dataclasses.dataclass(frozen=True)
-class MaskConfig:
-    """How masks are compared with simulated silhouettes (`mask_problem`).
-
-    Attributes:
-        sigma: opacity noise (residual unit; the estimate does not depend on it).
-        barycentre_weight: weight of the barycentre residuals (the tracker's).
-        max_size: each frame's window is box-averaged until its longest side is at most this (pixels).
-        n_samples: samples per ray through the object's bounding sphere.
-        margin: the windows grow by this times the largest mask's longest side on every side.
-        supersample: each pixel's opacity is the mean of supersample² rays through it, as the masks
-            box-averaged to the window's pixels are the object's share of each pixel. With one ray a
-            hard edge changes a pixel only when it crosses the pixel's centre, and the loss is a
-            staircase in the pose, flat between steps.
-        edge: the silhouette's edge is a ramp about this many pixels wide: the density is rendered
-            as peak · S(−d / w) with d the signed distance to its half level and w this width at the
-            object's distance (`soft_edged`). The ramp keeps the surface where it is (blurring the
-            density would pull it in where two faces meet), and makes the loss smooth at the scale
-            of a pixel: measured on a box sliding at 1.6 m/s, a 0.75 mm edge (a third of a pixel)
-            took 4 horizons of ~50 Levenberg-Marquardt iterations each, a 3 mm one 20-30.
-        first_seconds: the fit is continued over growing horizons: the frames of the first this many
-            seconds, then twice as many, ..., then all (`identify_masks`); a horizon over which the
-            simulation drifts out of the masks gives no gradient, and one too short for friction to
-            act leaves μ free to trade against the initial velocity: counted in frames (8), the
-            first horizon at 120 fps was 0.07 s, over which a friction error of 0.15 moves the box
-            ½·0.15·g·t² = 3 mm, a pixel; the fit went to μ 0.8 there and never came back
-            (bench/pixels.py, box 120 fps noisy: μ 0.75 for 0.4).
-        init_seconds: the first frames of this many seconds (at least 3) are tracked for the initial
-            state when no start track is given; a body starting within `settle` of the ground is
-            put on it along the camera's rays (`_along_rays`).
-        pose_sigma: how far the first frames' poses may be off, m: the initial pose is fitted within
-            5 of it.
-        settle: a body whose lowest point starts within this distance (m) of the ground is started
-            on it, sliding (`make_problem`'s `settle`: height, rocking and lifting velocities set by
-            contact, the rest fitted). A depth read from a few dozen pixels' silhouette is off by a
-            centimetre or more; started that far above the table, the fit found a box tumbling in
-            the air that matched the noisy masks' sizes better than the sliding truth (bench/pixels.py,
-            box 30 fps noisy: μ 0.32 for 0.4).
-        blur: each horizon is fitted with the residual images blurred by these Gaussian widths
-            (window pixels) in turn, the last 0 (`blurred`): the sharp residual's Jacobian reaches only
-            the edge's ramp, and Levenberg-Marquardt crawled there a pixel per step (the same case:
-            every stage at the 50-iteration limit, μ off by 6 %; blurred first, every stage converged,
-            1.4 %).
-        refine: fitted with θ and the initial state (`PixelObservation.refine`): "camera" (its
-            extrinsics) and/or "object" (the field's pose in the DANO's frame), small corrections.
-        refine_limits: (rad, m): every component of those corrections within these.
-    """
-
-    sigma: float = 0.1
-    barycentre_weight: float = 1.0
-    max_size: int = 64
-    n_samples: int = 48
-    margin: float = 0.3
-    supersample: int = 2
-    edge: float = 1.0
-    first_seconds: float = 0.25
-    init_seconds: float = 0.2
-    pose_sigma: float = 2e-3
-    settle: float = 0.02
-    blur: tuple[float, ...] = (2.0, 0.0)
-    refine: tuple[str, ...] = ()
-    refine_limits: tuple[float, float] = (0.05, 0.02)
+from dano.vision.observation import (
+    REFINED,
+    MaskConfig,
+    MaskError,
+    MaskTargets,
+    PixelObservation,
+    blurred,
+    finer_camera,
+    soft_edged,
+)
+from dano.vision.start import first_frames, padded
+from dano.vision.track import downsample, largest_parts, windows
 
 
 def dano_field(body: DanoBody) -> tuple[AbstractField, float]:
@@ -378,10 +139,10 @@ def mask_problem(
     com = np.asarray(target.dano.com)
     grounded = None
     if start is None:
-        start, grounded = _first_frames(own, camera, masks, visible, fps, target, scene, start_pose, config, progress)
+        start, grounded = first_frames(own, camera, masks, visible, fps, target, scene, start_pose, config, progress)
     if start.n_frames < 3:
         raise MaskError(f"the start track has {start.n_frames} frames; the initial velocity needs at least 3")
-    recording = Recording({target.name: _padded(start, len(masks), 1.0 / fps)})
+    recording = Recording({target.name: padded(start, len(masks), 1.0 / fps)})
     problem = make_problem(
         scene, [recording], fit, initial=initial, sigma=config.pose_sigma, rotation_weight=0.0, settle=config.settle,
     )  # fmt: skip
@@ -394,107 +155,6 @@ def mask_problem(
     if not visible.all():
         adjustments["frames_without_mask"] = [int(k) for k in np.flatnonzero(~visible)]
     return dataclasses.replace(problem, windows=windows, observation=observation, adjustments=adjustments)
-
-
-def _first_frames(field, camera, masks, visible, fps, target, scene, start_pose, config: MaskConfig, progress):
-    """The centre of mass's track over the first visible frames (`config.init_seconds`), by the
-    per-frame tracker, put on the ground along the camera's rays where it starts near it
-    (`_along_rays`); with what that moved (None: nothing)."""
-    want = max(3, int(np.ceil(config.init_seconds * fps - 1e-6)))
-    k = 0
-    while k < min(want, len(masks)) and visible[k]:
-        k += 1
-    if k < 3:
-        raise MaskError(f"the first 3 masks must show the object to start from (frame {k} is empty)")
-    com = np.asarray(target.dano.com)
-    result = track(field, camera, masks[:k], TrackConfig(), init=start_pose, progress=progress)
-    quats = unflipped(result.quats)
-    rot = np.asarray(quat_to_mat(jnp.asarray(quats)))
-    pos, moved = _along_rays(
-        result.positions + np.einsum("tij,j->ti", rot, com), rot, target.dano, scene, camera, config
-    )
-    return Track(t=np.arange(k) / fps, pos=_quadratic(pos), quat=quats, source="masks (first frames tracked)"), moved
-
-
-def _along_rays(pos, rot, dano, scene: Scene, camera: Camera, config: MaskConfig):
-    """Tracked centres of mass (k, 3) moved along the camera's rays to the height at which the
-    first frame's orientation rests on the ground, when its lowest point is within `config.settle`
-    of it (a body sliding on the ground keeps its centre's height; the tracked tilts of later frames
-    are no better than their depths); with a report.
-
-    A silhouette fixes where the object is across the view far better than along it: an edge eroded
-    or dilated by a pixel reads as the object farther or nearer, by centimetres at a few dozen pixels
-    (bench/pixels.py, box 120 fps noisy: the first six frames tracked 1.5-3.8 cm above the table and
-    as much off across it, an initial velocity off by 2 m/s). Settling straight down (`make_problem`)
-    keeps the error across; along the ray it goes: there, within 5 mm.
-    """
-    if scene.ground_height is None:
-        return pos, None
-    n = np.asarray(scene.ground_normal, dtype=float)
-    n = n / np.linalg.norm(n)
-    offsets = np.asarray(dano.points, dtype=float) - np.asarray(dano.com, dtype=float)
-    lowest = np.min(np.einsum("ij,pj,i->p", rot[0], offsets, n))  # the first frame's lowest point, from the centre
-    gap = float(pos[0] @ n + lowest - float(scene.ground_height))
-    if not gap <= config.settle:
-        return pos, None
-    eye = np.asarray(camera.position, dtype=float)
-    along = (pos - eye) @ n
-    if np.any(np.abs(along) < 1e-9):  # a ray parallel to the ground: nothing to intersect
-        return pos, None
-    scale = (float(scene.ground_height) - lowest - eye @ n) / along
-    if np.any(scale <= 0):  # the ground behind the camera along a ray
-        return pos, None
-    moved = eye + scale[:, None] * (pos - eye)
-    shift = np.linalg.norm(moved - pos, axis=1)
-    return moved, {"frames": len(pos), "max_moved_m": float(shift.max()), "first_gap_m": gap}
-
-
-def _quadratic(pos: Float[np.ndarray, "k 3"]) -> Float[np.ndarray, "k 3"]:
-    """The least-squares quadratic in time through the positions: the initial velocity is read from
-    the first three frames, and one noisy mask (an eroded or dilated edge moves the tracked depth by
-    millimetres) would otherwise set it."""
-    t = np.arange(len(pos), dtype=float)
-    basis = np.stack([np.ones_like(t), t, t * t], axis=1)
-    coef, *_ = np.linalg.lstsq(basis, pos, rcond=None)
-    return basis @ coef
-
-
-_HALF_TURNS = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
-"""The identity and the half turns about the object frame's x, y and z axes (w, x, y, z)."""
-
-
-def unflipped(quats: Float[np.ndarray, "n 4"]) -> Float[np.ndarray, "n 4"]:
-    """Tracked orientations with half-turn flips undone: a frame more than 90° from where the frames
-    before put it (at constant angular velocity) becomes whichever of q, q·Rx(π), q·Ry(π), q·Rz(π)
-    is nearest that prediction. A mask cannot tell these apart for an object symmetric about its
-    frame's axes (a box: the tracker may report it upside down from one frame to the next), and a
-    turn of more than 90° between two frames is no slide's; the initial angular velocity read
-    from a flipped frame would be absurd.
-    """
-    quats = np.asarray(quats, dtype=float)
-    out = [quats[0]]
-    for k in range(1, len(quats)):
-        guess = out[-1] if k < 2 else np.asarray(quat_mul(quat_mul(out[-1], quat_conj(out[-2])), out[-1]))
-        if _angle(quats[k], guess) > 0.5 * np.pi:
-            candidates = np.asarray(quat_mul(jnp.asarray(quats[k])[None], jnp.asarray(_HALF_TURNS)))
-            out.append(min(candidates, key=lambda c: _angle(c, guess)))
-        else:
-            out.append(quats[k])
-    return np.stack(out)
-
-
-def _angle(a: np.ndarray, b: np.ndarray) -> float:
-    return float(2.0 * np.arccos(np.clip(abs(float(np.dot(a, b))), 0.0, 1.0)))
-
-
-def _padded(start: Track, n: int, dt: float) -> Track:
-    """The start track extended to n frames by its last pose (poses after the start are not used:
-    the masks are the data), on the masks' clock."""
-    if abs(start.dt - dt) > 1e-6 * dt:
-        raise MaskError(f"the start track's frame rate {1 / start.dt:.6g} fps is not the masks' {1 / dt:.6g}")
-    k = min(start.n_frames, n)
-    index = np.minimum(np.arange(n), k - 1)
-    return Track(t=np.arange(n) * dt, pos=start.pos[index], quat=start.quat[index], source=start.source)
 
 
 def _observation(problem: Problem, name, field, peak, com, camera, masks, visible, config: MaskConfig):
@@ -510,7 +170,7 @@ def _observation(problem: Problem, name, field, peak, com, camera, masks, visibl
     ss = int(config.supersample)
     if ss < 1:
         raise MaskError(f"supersample must be at least 1, got {ss}")
-    origins, directions = (a.reshape(cam.height, ss, cam.width, ss, 3) for a in camera_rays(_finer(cam, ss)))
+    origins, directions = (a.reshape(cam.height, ss, cam.width, ss, 3) for a in camera_rays(finer_camera(cam, ss)))
     origins, directions = (a.transpose(0, 2, 1, 3, 4).reshape(cam.height * cam.width, ss * ss, 3)
                            for a in (origins, directions))  # fmt: skip
     uv = np.stack(np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5), -1).reshape(-1, 2)
@@ -537,70 +197,6 @@ def _observation(problem: Problem, name, field, peak, com, camera, masks, visibl
         limits=(float(config.refine_limits[0]), float(config.refine_limits[1])),
     )  # fmt: skip
     return observation, targets
-
-
-def _finer(camera: Camera, k: int) -> Camera:
-    """The camera with k × k pixels for each of its own (row-major rays through their centres)."""
-    return dataclasses.replace(
-        camera, width=camera.width * k, height=camera.height * k, fx=camera.fx * k, fy=camera.fy * k,
-        cx=camera.cx * k, cy=camera.cy * k,
-    )  # fmt: skip
-
-
-class SoftEdged(AbstractField):
-    """Occupancy S(−d(x) / width) of an analytic field's signed distance d (its half level exact)."""
-
-    field: AbstractField
-    width: float = eqx.field(static=True)
-    bounds: Bounds = eqx.field(static=True)
-
-    def __call__(self, x: Float[Array, "n 3"]) -> Float[Array, " n"]:
-        return smootherstep(-self.field.signed_distance(x) / self.width)  # pyright: ignore[reportAttributeAccessIssue]
-
-
-def soft_edged(field: AbstractField, peak: float, width: float, max_nodes: int = 160) -> AbstractField:
-    """Occupancy (0..1) whose half level is `field`'s half-peak level and which ramps over ±`width`
-    (m) across it: S(−d / width) with d the signed distance to that level (`smootherstep`).
-
-    An analytic field gives d exactly. Any other is baked on a grid of spacing ≤ width / 3 (at most
-    `max_nodes` along its longest side), and d is the Euclidean distance transform of its inside
-    (≥ half peak) and outside, each side measured to the midpoint between neighbouring nodes of
-    opposite sides (exact to half a spacing, then smoothed over the width by the ramp).
-    """
-    from scipy.ndimage import distance_transform_edt
-
-    from dano.fields.grid import as_grid
-
-    grow = 1.5 * width
-    lo, hi = (np.asarray(b, dtype=float) for b in field.bounds)
-    bounds = as_bounds(np.stack([lo - grow, hi + grow]))
-    if hasattr(field, "signed_distance"):
-        return SoftEdged(field, float(width), bounds)
-    extent = float(np.max(hi - lo)) + 2 * grow
-    spacing = max(width / 3.0, extent / (max_nodes - 1))
-    shape = tuple(int(np.ceil((b - a) / spacing)) + 1 for a, b in zip(bounds[0], bounds[1], strict=True))
-    upper = np.asarray(bounds[0]) + spacing * (np.asarray(shape) - 1)
-    grid = as_grid(CallableField(field, bounds), shape)  # pyright: ignore[reportArgumentType]
-    inside = np.asarray(grid.density) >= 0.5 * peak
-    outside_to = np.asarray(distance_transform_edt(inside, sampling=spacing))
-    inside_to = np.asarray(distance_transform_edt(~inside, sampling=spacing))
-    d = outside_to - inside_to
-    d = -np.asarray(d) - np.where(inside, -0.5 * spacing, 0.5 * spacing)  # negative inside, to the midpoints
-    occupancy = np.asarray(smootherstep(jnp.asarray(-d / width)))
-    return GridField(jnp.asarray(occupancy), (tuple(bounds[0]), tuple(upper)))
-
-
-def simulated_silhouettes(problem: Problem, theta, delta) -> tuple[np.ndarray, np.ndarray]:
-    """(rendered opacity, mask) per frame 1..n-1 over the frames' windows, (n - 1, r) each, at (θ, δ)."""
-    from dano.sysid.problem import simulate_windows
-
-    observation = problem.observation
-    if not isinstance(observation, PixelObservation):
-        raise SysidError("the problem is not fitted to masks")
-    q = simulate_windows(problem, theta, delta)[0, 1:]
-    w0 = jax.tree_util.tree_map(lambda x: x[0], problem.windows)
-    params = own_unknowns(w0, jnp.asarray(delta)[0])
-    return np.asarray(observation.silhouettes(q, w0.observed, params)), np.asarray(w0.observed.mask)
 
 
 def identify_masks(
