@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dano.sim.implicit import minimize_convex, newton, run_if, solve_implicit
+from dano.sim.newton import minimize_convex, newton, run_if, solve_implicit
 from helpers import partial_differences
 
 INDEX = np.array([2, 0, 1, 2])
