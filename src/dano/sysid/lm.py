@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
+from jaxtyping import Array
 
 from dano.results import Result
 
@@ -20,7 +21,7 @@ class Point:
     """An iterate: unknowns y, residuals r, loss ½|r|², gradient g = Jᵀr and Hessian H = JᵀJ."""
 
     y: np.ndarray
-    r: object
+    r: Array
     loss: float
     g: np.ndarray
     H: np.ndarray

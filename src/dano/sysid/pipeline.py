@@ -3,6 +3,7 @@
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -60,7 +61,7 @@ class SysidConfig:
     fps: float | None = None
     scale: float | None = None
     size: float | None = None
-    gravity: object = None
+    gravity: Sequence[float] | Literal["fit"] | None = None
     body: str | None = None
     window: int | None = None
     initial: str = "none"

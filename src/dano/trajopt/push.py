@@ -20,7 +20,7 @@ import numpy as np
 from dano.scenarios import push_scene
 from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Scene
-from dano.sim.step import scaled_model, step
+from dano.sim.step import Trajectory, scaled_model, step
 from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, compiled, solve
 from dano.trajopt.pushers import AbstractPusher, dof, pusher
 from dano.trajopt.task import PushTask
@@ -196,7 +196,7 @@ class PushResult:
     final_error_m: float
     ee_error_m: float
     replay_gap_m: float
-    replay: object
+    replay: Trajectory
 
     def summary(self, params: dict | None = None, adjustments: dict | None = None) -> dict:
         """The `dano trajopt --json` object (`dano.results`): `params` as the user gave them, `rms`
