@@ -10,7 +10,7 @@ import dano
 from dano.fields import GridField, mesh_field
 from dano.math import quat_exp
 from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_mesh_video, render_views
-from dano.vision.fit import FitConfig, FitError, fit_field, solidify
+from dano.vision.fit import FitConfig, FitError, GridModel, fit_field, solidify
 from dano.vision.track import (
     TrackConfig,
     TrackError,
@@ -36,7 +36,7 @@ def _principal_per_mass(mesh):
 def test_a_box_fitted_from_24_small_views_is_a_solid_box(tmp_path):
     render_views(BOX, tmp_path / "views", n_views=24, resolution=32, progress=False)
     views = load_nerf_synthetic(tmp_path / "views")
-    config = FitConfig(steps=300, resolution=32, n_samples=64)
+    config = FitConfig(GridModel(resolution=32), steps=300, n_samples=64)
     result = fit_field(views, config, key=jax.random.key(0), progress=False)
     assert result.psnr[-20:].mean() > 20.0
     assert isinstance(result.field, GridField)
@@ -164,3 +164,18 @@ def test_track_refuses_masks_of_another_size_and_empty_masks():
         track(field, camera, masks, progress=False)
     small, cam = downsample(np.ones((1, 12, 16)), camera, 2)
     assert small.shape == (1, 6, 8) and cam.fx == pytest.approx(camera.fx / 2)
+
+
+def test_each_fitting_back_end_holds_its_own_settings_behind_one_interface():
+    from dano.vision.fit import AbstractRadiance, MlpModel, init_radiance_field
+
+    assert FitConfig("mlp").model == MlpModel() and FitConfig().model == GridModel()
+    with pytest.raises(FitError, match="model must be one of 'grid', 'mlp'"):
+        FitConfig(model="octree")
+    bounds = np.array([[-0.1, -0.05, -0.02], [0.1, 0.05, 0.02]])
+    for model in (GridModel(resolution=16), MlpModel(width=8, depth=1, n_frequencies=2)):
+        field = init_radiance_field(bounds, FitConfig(model, n_samples=16), key=jax.random.key(0))
+        assert isinstance(field, AbstractRadiance)
+        sigma, colour = field(jnp.zeros((5, 3)))
+        assert sigma.shape == (5,) and colour.shape == (5, 3) and np.all(np.asarray(sigma) > 0)
+    assert GridModel().regularisation == 1e-4 and MlpModel().regularisation == 0.0

@@ -97,10 +97,10 @@ def _fit_field(args: argparse.Namespace) -> None:
 
     from dano.fields import GridField, save_grid
     from dano.vision.datasets import load_nerf_synthetic
-    from dano.vision.fit import FitConfig, fit_field, solidify
+    from dano.vision.fit import FitConfig, GridModel, fit_field, solidify
 
     views = load_nerf_synthetic(args.dataset, split=args.split, downscale=args.downscale)
-    config = FitConfig(steps=args.steps, resolution=args.resolution, n_samples=args.samples)
+    config = FitConfig(GridModel(resolution=args.resolution), steps=args.steps, n_samples=args.samples)
     result = fit_field(views, config, key=jax.random.key(args.seed), progress=not args.json)
     assert isinstance(result.field, GridField)  # the default model, "grid"
     solid = solidify(result.field, views)

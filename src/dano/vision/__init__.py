@@ -17,7 +17,7 @@ from dano.vision.camera import (
     save_camera,
 )
 from dano.vision.datasets import Views, load_nerf_synthetic
-from dano.vision.fit import FitConfig, fit_field
+from dano.vision.fit import FitConfig, GridModel, MlpModel, fit_field
 from dano.vision.media import box_downscale, colour_key_masks, load_frames, load_masks, read_image, read_mask
 from dano.vision.observation import MaskConfig
 from dano.vision.pixels import identify_mask_files, identify_masks
@@ -33,7 +33,7 @@ def __getattr__(name: str):
 
 
 __all__ = [
-    "Camera", "FitConfig", "MaskConfig", "TrackConfig", "Views", "VisionDataError", "bounding_sphere", "box_downscale",
+    "Camera", "FitConfig", "GridModel", "MlpModel", "MaskConfig", "TrackConfig", "Views", "VisionDataError", "bounding_sphere", "box_downscale",
     "camera_from_fov", "camera_rays", "colour_key_masks", "fit_field", "framing_distance", "identify_mask_files",
     "identify_masks", "load_camera", "load_frames", "load_masks", "load_nerf_synthetic", "look_at", "project",
     "read_image", "read_mask", "render_mesh_video", "render_views", "save_camera", "sphere_cameras", "track",

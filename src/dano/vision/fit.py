@@ -42,40 +42,98 @@ class FitError(DanoError):
 
 
 @dataclasses.dataclass(frozen=True)
+class GridModel:
+    """A voxel grid of density and colour, trilinear (seconds per thousand steps on a CPU).
+
+    Attributes:
+        resolution: grid nodes along the box's longest side.
+        smoothness: weight of the grid's total variation (mean squared difference of neighbouring
+            nodes' raw density), which keeps unseen space and the inside free of noise.
+    """
+
+    resolution: int = 64
+    smoothness: float = 1e-4
+
+    def init(self, bounds: np.ndarray, scale: float, key: PRNGKeyArray) -> "AbstractRadiance":
+        """Nearly transparent (raw density -4: sigma ~ 2 % of `scale`)."""
+        lo, hi = bounds
+        shape = tuple(max(2, int(round(self.resolution * e / (hi - lo).max()))) for e in hi - lo)
+        return VoxelRadiance(jnp.full(shape, -4.0), jnp.zeros((*shape, 3)), scale, np.stack([lo, hi]))
+
+    @property
+    def regularisation(self) -> float:
+        return self.smoothness
+
+
+@dataclasses.dataclass(frozen=True)
+class MlpModel:
+    """A `NeuralField` and a colour network (smooth, ~10x slower to train than a grid; a learning
+    rate ~5e-3 suits it).
+
+    Attributes:
+        width, depth, n_frequencies: the density network (`NeuralFieldConfig`); the colour network
+            is as wide.
+    """
+
+    width: int = 64
+    depth: int = 3
+    n_frequencies: int = 5
+
+    def init(self, bounds: np.ndarray, scale: float, key: PRNGKeyArray) -> "AbstractRadiance":
+        """Nearly transparent (last bias -4: sigma ~ 2 % of `scale`)."""
+        net = NeuralFieldConfig(width=self.width, depth=self.depth, n_frequencies=self.n_frequencies,
+                                density_scale=scale)  # fmt: skip
+        k1, k2 = jax.random.split(key)
+        density = NeuralField(np.asarray(bounds), net, key=k1)
+        bias = density.mlp.layers[-1].bias
+        assert bias is not None  # the MLP of a `NeuralField` has biases
+        density = eqx.tree_at(lambda f: f.mlp.layers[-1].bias, density, jnp.full_like(bias, -4.0))
+        colour = eqx.nn.MLP(3 + 6 * self.n_frequencies, 3, self.width, 2, activation=jax.nn.softplus, key=k2)
+        return RadianceField(density, colour)
+
+    @property
+    def regularisation(self) -> float:
+        return 0.0
+
+
+MODELS = {"grid": GridModel, "mlp": MlpModel}
+"""The fitting back-ends by name (`FitConfig.model` may name one with its defaults)."""
+
+
+@dataclasses.dataclass(frozen=True)
 class FitConfig:
     """Training settings.
 
     Attributes:
-        model: "grid" (a voxel grid of density and colour, trilinear; seconds per thousand steps on a
-            CPU) or "mlp" (a `NeuralField` and a colour network; smooth, ~10x slower to train).
+        model: the back-end and its own settings: `GridModel()` (default; or "grid") or `MlpModel()`
+            (or "mlp").
         steps: optimiser steps.
         batch_rays: rays per step.
         n_samples: samples per ray, evenly spread over the ray's path through the box.
-        learning_rate: Adam's initial rate (cosine decay to 5 % of it); ~0.1 for "grid", ~5e-3 for "mlp".
+        learning_rate: Adam's initial rate (cosine decay to 5 % of it); ~0.1 for a grid, ~5e-3 for an MLP.
         mask_weight: weight of the opacity-vs-mask term.
-        resolution: grid nodes along the box's longest side ("grid").
-        smoothness: weight of the grid's total variation (mean squared difference of neighbouring
-            nodes' raw density), which keeps unseen space and the inside free of noise ("grid").
-        width, depth, n_frequencies: the density network (`NeuralFieldConfig`) ("mlp").
         opaque_samples: the density scale is set so that `opaque_samples` samples of a unit network
             output make a ray 63 % opaque; it only sets the units the model starts in.
         dtype: training precision ("float32" is twice as fast on a CPU as "float64"); the result
             is returned in JAX's default float type.
     """
 
-    model: str = "grid"
+    model: GridModel | MlpModel | str = GridModel()
     steps: int = 1000
     batch_rays: int = 2048
     n_samples: int = 128
     learning_rate: float = 0.1
     mask_weight: float = 1.0
-    resolution: int = 64
-    smoothness: float = 1e-4
-    width: int = 64
-    depth: int = 3
-    n_frequencies: int = 5
     opaque_samples: float = 0.5
     dtype: str = "float32"
+
+    def __post_init__(self):
+        if isinstance(self.model, str):
+            if self.model not in MODELS:
+                raise FitError(f"model must be one of {', '.join(map(repr, MODELS))}, got {self.model!r}")
+            object.__setattr__(self, "model", MODELS[self.model]())  # a frozen field, normalised
+        elif not isinstance(self.model, GridModel | MlpModel):
+            raise FitError(f"model must be a GridModel, an MlpModel or its name, got {type(self.model).__name__}")
 
 
 def cosine_rate(rate: float, progress: Float[Array, ""]) -> Float[Array, ""]:
@@ -143,25 +201,12 @@ class VoxelRadiance(AbstractRadiance):
 
 
 def init_radiance_field(bounds, config: FitConfig, *, key: PRNGKeyArray) -> AbstractRadiance:
-    """A model that starts nearly transparent (raw density -4: sigma ~ 2 % of its scale)."""
+    """`config.model`'s radiance field in the box `bounds` (2, 3), nearly transparent."""
     lo, hi = np.asarray(bounds, dtype=float)
     spacing = float(np.linalg.norm(hi - lo)) / config.n_samples
     scale = 1.0 / (config.opaque_samples * spacing)
-    if config.model == "grid":
-        shape = tuple(max(2, int(round(config.resolution * e / (hi - lo).max()))) for e in hi - lo)
-        return VoxelRadiance(jnp.full(shape, -4.0), jnp.zeros((*shape, 3)), scale, np.stack([lo, hi]))
-    if config.model != "mlp":
-        raise FitError(f"model must be 'grid' or 'mlp', got {config.model!r}")
-    net = NeuralFieldConfig(
-        width=config.width, depth=config.depth, n_frequencies=config.n_frequencies, density_scale=scale
-    )
-    k1, k2 = jax.random.split(key)
-    density = NeuralField(np.stack([lo, hi]), net, key=k1)
-    bias = density.mlp.layers[-1].bias
-    assert bias is not None  # the MLP of a `NeuralField` has biases
-    density = eqx.tree_at(lambda f: f.mlp.layers[-1].bias, density, jnp.full_like(bias, -4.0))
-    colour = eqx.nn.MLP(3 + 6 * config.n_frequencies, 3, config.width, 2, activation=jax.nn.softplus, key=k2)
-    return RadianceField(density, colour)
+    assert isinstance(config.model, GridModel | MlpModel)  # `FitConfig.__post_init__` normalises a name
+    return config.model.init(np.stack([lo, hi]), scale, key)
 
 
 def visual_hull_bounds(views: Views, resolution: int = 48, margin: float = 0.1) -> np.ndarray:
@@ -261,6 +306,8 @@ def fit_field(
 
     k_init, k_train = jax.random.split(key)
     model = init_radiance_field(bounds, config, key=k_init)
+    assert isinstance(config.model, GridModel | MlpModel)
+    regularisation = config.model.regularisation
     params, static = eqx.partition(model, eqx.is_inexact_array)
     params = jax.tree_util.tree_map(lambda a: a.astype(dtype), params)
 
@@ -281,7 +328,7 @@ def fit_field(
                                       k_samples)  # fmt: skip
             colour_mse = jnp.mean((rgb - colours[i]) ** 2)
             masked = mask_weight * jnp.mean((opacity - masks[i]) ** 2)
-            return colour_mse + masked + config.smoothness * model.regulariser(), colour_mse
+            return colour_mse + masked + regularisation * model.regulariser(), colour_mse
 
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         with jax.numpy_dtype_promotion("standard"):  # optax raises floats to int powers
