@@ -33,8 +33,9 @@ def __getattr__(name: str):
 
 
 __all__ = [
-    "Camera", "FitConfig", "GridModel", "MlpModel", "MaskConfig", "TrackConfig", "Views", "VisionDataError", "bounding_sphere", "box_downscale",
-    "camera_from_fov", "camera_rays", "colour_key_masks", "fit_field", "framing_distance", "identify_mask_files",
-    "identify_masks", "load_camera", "load_frames", "load_masks", "load_nerf_synthetic", "look_at", "project",
-    "read_image", "read_mask", "render_mesh_video", "render_views", "save_camera", "sphere_cameras", "track",
+    "Camera", "FitConfig", "GridModel", "MlpModel", "MaskConfig", "TrackConfig", "Views", "VisionDataError",
+    "bounding_sphere", "box_downscale", "camera_from_fov", "camera_rays", "colour_key_masks", "fit_field",
+    "framing_distance", "identify_mask_files", "identify_masks", "load_camera", "load_frames", "load_masks",
+    "load_nerf_synthetic", "look_at", "project", "read_image", "read_mask", "render_mesh_video", "render_views",
+    "save_camera", "sphere_cameras", "track",
 ]  # fmt: skip
