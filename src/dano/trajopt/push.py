@@ -21,7 +21,8 @@ from dano.scenarios import push_scene
 from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Scene
 from dano.sim.step import Trajectory, scaled_model, step
-from dano.trajopt.ilqr import OptimalControlProblem, Options, Solution, TrajoptError, compiled, solve
+from dano.trajopt.ilqr import Options, Solution, compiled, solve
+from dano.trajopt.pieces import OptimalControlProblem, TrajoptError
 from dano.trajopt.pushers import AbstractPusher, dof, pusher
 from dano.trajopt.task import PushTask
 from dano.types import DANO

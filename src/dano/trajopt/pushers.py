@@ -18,7 +18,7 @@ from dano.assets import panda
 from dano.sim.run import Simulation
 from dano.sim.scene import Scene
 from dano.sim.step import mjx_kinematics
-from dano.trajopt.ilqr import TrajoptError
+from dano.trajopt.pieces import TrajoptError
 from dano.trajopt.task import PushTask
 from dano.types import DANO
 

@@ -1,0 +1,184 @@
+"""The optimal control problem (`OptimalControlProblem`) and the pure functions iLQR is made of:
+the objective, the constraint violation, the augmented Lagrangian, its expansion along a
+trajectory, the Riccati backward pass and the closed-loop forward pass (`dano.trajopt.ilqr` jits
+them once per problem and runs the loops)."""
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from dano.errors import DanoError
+
+
+class TrajoptError(DanoError):
+    """A trajectory optimisation problem that cannot be set up as asked."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class OptimalControlProblem:
+    """x' = f(x, u, t) with costs and constraints (see the module docstring); all pure JAX functions.
+    Hashed by identity: its compiled pieces are kept per problem (`compiled`).
+
+    Attributes:
+        dynamics: f(x (n,), u (m,), t) -> (n,).
+        cost: ℓ(x, u, t) -> scalar, t = 0 … T-1.
+        terminal_cost: ℓ_T(x) -> scalar.
+        horizon: T.
+        constraints: c(x, u, t) -> (p,), feasible where ≤ 0; or None.
+        terminal_constraints: h(x) -> (q,), feasible where = 0; or None.
+        compiler_options: XLA options for jitting the solver's pieces, e.g.
+            `dano.sim.run.compiler_options(world)`: the same as the forward simulator's, so that an
+            open-loop replay there repeats the optimiser's arithmetic.
+    """
+
+    dynamics: Callable
+    cost: Callable
+    terminal_cost: Callable
+    horizon: int
+    constraints: Callable | None = None
+    terminal_constraints: Callable | None = None
+    compiler_options: dict | None = None
+
+
+def rollout(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: Float[Array, "T m"]) -> Array:
+    """States (T+1, n) of the open-loop controls from x0."""
+
+    def step(x, ut):
+        u, t = ut
+        x_next = problem.dynamics(x, u, t)
+        return x_next, x_next
+
+    _, xs = jax.lax.scan(step, x0, (controls, jnp.arange(problem.horizon)))
+    return jnp.concatenate([x0[None], xs], axis=0)
+
+
+def width(fn, *args) -> int:
+    """Length of the vector `fn(*args)` returns (0 for no function), without evaluating it."""
+    return 0 if fn is None else int(jax.eval_shape(fn, *args).shape[0])
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Pieces:
+    """A problem's functions as the solver's pieces use them: constraints that are empty vectors
+    where the problem has none, the time indices, the state and control sizes."""
+
+    problem: OptimalControlProblem
+    c: Callable  # c(x, u, t) -> (p,)
+    h: Callable  # h(x) -> (q,)
+    ts: Array  # (T,)
+    n: int
+    m: int
+
+    def running(self, x, u, t, lam, rho, active):
+        c = self.c(x, u, t)
+        return self.problem.cost(x, u, t) + lam @ c + 0.5 * rho * jnp.sum(active * c**2)
+
+    def terminal(self, x, nu, rho):
+        h = self.h(x)
+        return self.problem.terminal_cost(x) + nu @ h + 0.5 * rho * h @ h
+
+    def constraints(self, xs, us):
+        return jax.vmap(self.c)(xs[:-1], us, self.ts)
+
+
+def active_set(c, lam):
+    return ((c > 0) | (lam > 0)).astype(c.dtype)
+
+
+def objective(f: Pieces, xs, us):
+    """∑ℓ + ℓ_T, without the Lagrangian terms."""
+    return jnp.sum(jax.vmap(f.problem.cost)(xs[:-1], us, f.ts)) + f.problem.terminal_cost(xs[-1])
+
+
+def violation(f: Pieces, xs, us):
+    """The largest violation (inequality excess or |h|), and c (T, p), h (q,)."""
+    c = f.constraints(xs, us)
+    h = f.h(xs[-1])
+    worst_c = jnp.max(jnp.maximum(c, 0.0), initial=0.0)
+    worst_h = jnp.max(jnp.abs(h), initial=0.0)
+    return jnp.maximum(worst_c, worst_h), c, h
+
+
+def augmented(f: Pieces, xs, us, lam, nu, rho):
+    """The augmented-Lagrangian cost."""
+    active = active_set(f.constraints(xs, us), lam)
+    run = jax.vmap(f.running, in_axes=(0, 0, 0, 0, None, 0))(xs[:-1], us, f.ts, lam, rho, active)
+    return jnp.sum(run) + f.terminal(xs[-1], nu, rho)
+
+
+def expand(f: Pieces, xs, us, lam, nu, rho, jacobian_batch):
+    """Dynamics Jacobians and the augmented cost's gradients and Hessians along (xs, us)."""
+    problem, n, ts = f.problem, f.n, f.ts
+    jac = jax.jacfwd(problem.dynamics, argnums=(0, 1))
+    if jacobian_batch is None:
+        A, B = jax.vmap(jac)(xs[:-1], us, ts)
+    else:
+        batch = None if jacobian_batch == 1 else jacobian_batch  # 1: a plain scan, branches kept
+        A, B = jax.lax.map(lambda a: jac(*a), (xs[:-1], us, ts), batch_size=batch)
+    c = f.constraints(xs, us)
+    active = active_set(c, lam)
+    z = jnp.concatenate([xs[:-1], us], axis=1)
+
+    def cost_z(zt, t):
+        return problem.cost(zt[:n], zt[n:], t)
+
+    def c_z(zt, t):
+        return f.c(zt[:n], zt[n:], t)
+
+    # The Lagrangian terms to first order in c (Gauss-Newton, as ALTRO): their Hessian is
+    # rho C^T C over the active rows. Their exact Hessian adds (lam + rho c) * c'', which is
+    # indefinite for a nonlinear constraint (a link's height, a torque through the state)
+    # and would be met only by regularisation so large that the step vanishes.
+    C = jax.vmap(jax.jacfwd(c_z))(z, ts)  # (T, p, n + m)
+    g = jax.vmap(jax.grad(cost_z))(z, ts) + jnp.einsum("tpz,tp->tz", C, lam + rho * active * c)
+    H = jax.vmap(jax.hessian(cost_z))(z, ts) + rho * jnp.einsum("tpz,tp,tpy->tzy", C, active, C)
+    h = f.h(xs[-1])
+    Ch = jax.jacfwd(f.h)(xs[-1])  # (q, n)
+    gT = jax.grad(problem.terminal_cost)(xs[-1]) + Ch.T @ (nu + rho * h)
+    HT = jax.hessian(problem.terminal_cost)(xs[-1]) + rho * Ch.T @ Ch
+    return A, B, g, H, gT, HT
+
+
+def backward(f: Pieces, A, B, g, H, gT, HT, reg):
+    """Riccati recursion; returns gains, the predicted decrease terms and a failure flag."""
+    n, m = f.n, f.m
+
+    def step(carry, inputs):
+        Vx, Vxx, failed = carry
+        A_t, B_t, g_t, H_t = inputs
+        Qx = g_t[:n] + A_t.T @ Vx
+        Qu = g_t[n:] + B_t.T @ Vx
+        Qxx = H_t[:n, :n] + A_t.T @ Vxx @ A_t
+        Quu = H_t[n:, n:] + B_t.T @ Vxx @ B_t
+        Qux = H_t[n:, :n] + B_t.T @ Vxx @ A_t
+        Quu_reg = Quu + reg * jnp.eye(m)
+        L = jnp.linalg.cholesky(0.5 * (Quu_reg + Quu_reg.T))
+        bad = ~jnp.all(jnp.isfinite(L))
+        solve = lambda r: jax.scipy.linalg.cho_solve((L, True), r)  # noqa: E731
+        k = -solve(Qu)
+        K = -solve(Qux)
+        Vx = Qx + K.T @ Quu @ k + K.T @ Qu + Qux.T @ k
+        Vxx = Qxx + K.T @ Quu @ K + K.T @ Qux + Qux.T @ K
+        Vxx = 0.5 * (Vxx + Vxx.T)
+        dV = jnp.stack([k @ Qu, 0.5 * k @ Quu @ k])
+        return (Vx, Vxx, failed | bad), (k, K, dV)
+
+    (_, _, failed), (k, K, dV) = jax.lax.scan(step, (gT, HT, jnp.zeros((), bool)), (A, B, g, H), reverse=True)
+    failed = failed | ~jnp.all(jnp.isfinite(k)) | ~jnp.all(jnp.isfinite(K))
+    return k, K, jnp.sum(dV, axis=0), failed
+
+
+def forward(f: Pieces, xs, us, k, K, alpha):
+    """The closed-loop rollout u = ū + α k + K (x − x̄)."""
+
+    def step(x, inputs):
+        x_ref, u_ref, k_t, K_t, t = inputs
+        u = u_ref + alpha * k_t + K_t @ (x - x_ref)
+        x_next = f.problem.dynamics(x, u, t)
+        return x_next, (x_next, u)
+
+    _, (x_new, u_new) = jax.lax.scan(step, xs[0], (xs[:-1], us, k, K, f.ts))
+    return jnp.concatenate([xs[:1], x_new], axis=0), u_new
