@@ -133,6 +133,7 @@ def test_one_word_per_concept_and_the_old_spellings_still_parse_with_a_note(monk
     """Renamed options (`dano.cli.RENAMED`) parse to the same value as their new names, and the old
     spelling prints a one-line note naming the new one."""
     from dano import cli
+    from dano.cli.arguments import _vector
 
     parsed = []
     real = cli.parser
@@ -150,7 +151,7 @@ def test_one_word_per_concept_and_the_old_spellings_still_parse_with_a_note(monk
         assert main(argv + fit) == 0
     resolve = {
         "scene": lambda a: a.scene or a.scene_option,
-        "goal": lambda a: cli._vector(a.goal, 2, "--goal", "X,Y"),
+        "goal": lambda a: _vector(a.goal, 2, "--goal", "X,Y"),
     }.get(dest, lambda a: getattr(a, dest))
     assert resolve(parsed[0]) == resolve(parsed[1]) == value
     err = capsys.readouterr().err

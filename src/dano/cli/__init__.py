@@ -12,7 +12,7 @@ import sys
 import warnings
 from pathlib import Path
 
-from dano.cli.arguments import UsageError, _Parser, _vector  # noqa: F401  (_vector: tests)
+from dano.cli.arguments import UsageError, _Parser
 from dano.cli.media import _add_compare, _add_fit_field, _add_render_views, _add_track
 from dano.cli.objects import _add_build, _add_demo, _add_info, _add_simulate, info_dict
 from dano.cli.solvers import _add_sysid, _add_trajopt

@@ -232,28 +232,26 @@ def _contact_field(body: DanoBody) -> Callable[[Array], Array] | None:
 
 
 def _joint(model: mujoco.MjModel, name: str) -> int:
-    """The free joint of a body, or the first slide of an actuated primitive."""
-    names = {model.joint(j).name: j for j in range(model.njnt)}
-    for suffix in ("_slidex", "_free"):
-        if name + suffix in names:
-            return names[name + suffix]
-    raise AssertionError(f"{name!r} has no free joint or slide")  # an invariant of `_add_scene`
+    """A body's first joint: a DANO's or free primitive's free joint, an actuated primitive's x slide
+    (`_add_dano` and `add_primitive` add them first)."""
+    return int(model.body_jntadr[model.body(name).id])
 
 
 def _prim_geom(model: mujoco.MjModel, p: Primitive) -> PrimGeom:
     moving = p.mode in MOVING
+    body = model.body(p.name).id if p.mode != "static" else 0
     j = _joint(model, p.name) if moving else -1
     return PrimGeom(
         name=p.name,
         kind=p.kind,
         size=tuple(float(s) for s in p.size),
         mode=p.mode,
-        body=model.body(p.name).id if p.mode != "static" else 0,
+        body=body,
         pos=tuple(float(s) for s in p.pos),
         quat=tuple(float(s) for s in p.quat),
         qpos=int(model.jnt_qposadr[j]) if moving else -1,
         qvel=int(model.jnt_dofadr[j]) if moving else -1,
-        mocap=int(model.body_mocapid[model.body(p.name).id]) if p.mode == "mocap" else -1,
+        mocap=int(model.body_mocapid[body]) if p.mode == "mocap" else -1,
         actuator=int(model.actuator(f"{p.name}_forcex").id) if p.mode == "actuated" else -1,
         mass=float(p.mass) if moving else float("inf"),
     )
