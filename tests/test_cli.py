@@ -123,7 +123,7 @@ def test_build_json_is_what_info_reads_back(tmp_path, capsys):
          ["render-views", "m.ply", "-o", "d", "--image-size", "32"], "resolution", 32),
         (["track", "v", "--field", "f", "--camera", "c", "--masks", "m", "-o", "t.csv", "--iterations", "9"],
          ["track", "v", "--field", "f", "--camera", "c", "--masks", "m", "-o", "t.csv", "--steps", "9"],
-         "iterations", 9),
+         "config_iterations", 9),
         (["demo", "--out", "x"], ["demo", "-o", "x"], "out", "x"),
         (["trajopt", "push", "--goal", "0.1", "-0.05"], ["trajopt", "push", "--goal", "0.1,-0.05"],
          "goal", (0.1, -0.05)),
@@ -159,3 +159,63 @@ def test_one_word_per_concept_and_the_old_spellings_still_parse_with_a_note(monk
         assert err == ""
     else:
         assert err.count("\n") == 1 and f"{old[-2]} is now" in err, err
+
+
+@pytest.mark.parametrize("command,configs", [("track", ["TrackConfig"]), ("fit-field", ["FitConfig", "GridModel"])])
+def test_a_commands_solver_options_are_generated_from_its_config(monkeypatch, capsys, command, configs):
+    """Every number, switch and choice of the solver's settings is an option (its help the field's
+    docstring, its default the library's); a value given reaches the config, the others keep the
+    library's defaults; a value the config refuses is one line naming the field."""
+    import dataclasses
+
+    from dano import cli
+    from dano.cli.configs import field_help, from_args
+    from dano.vision import configs as C
+
+    p = cli.parser()
+    sub = next(a for a in p._actions if isinstance(a, cli.argparse._SubParsersAction)).choices[command]
+    dests = {a.dest for a in sub._actions}
+    for name in configs:
+        cls = getattr(C, name)
+        helps = field_help(cls)
+        for field in dataclasses.fields(cls):
+            if field.name == "model":  # the back-end: its own config's options (GridModel)
+                continue
+            assert "config_" + field.name in dests, (name, field.name)
+            assert helps[field.name], (name, field.name)  # every field documented
+    positional = {
+        "track": ["v", "--field", "f", "--camera", "c", "--masks", "m", "-o", "t.csv"],
+        "fit-field": ["d", "-o", "x.npz"],
+    }
+    args = sub.parse_args([*positional[command], "--learning-rate", "0.5", "--samples", "17"])
+    cls = C.TrackConfig if command == "track" else C.FitConfig
+    config = from_args(cls, args)
+    assert config.learning_rate == 0.5 and config.n_samples == 17
+    default = cls()
+    for field in dataclasses.fields(cls):
+        if field.name not in ("learning_rate", "n_samples"):
+            assert getattr(config, field.name) == getattr(default, field.name)
+    bad = sub.parse_args([*positional[command], "--learning-rate", "-1"])
+    error = C.TrackError if command == "track" else C.FitError
+    with pytest.raises(error, match="^learning_rate must be > 0"):
+        from_args(cls, bad)
+
+
+def test_string_options_are_enumerations_that_take_their_values():
+    """A mode given as its value is stored as the enumeration's member; a wrong one is refused with
+    the choices it takes."""
+    from dano.contact.pairs import ForceMode
+    from dano.sim.scene import Integrator, Mode, Primitive, Scene, SceneError
+    from dano.sysid.intervals import Interval
+    from dano.sysid.params import SysidError
+    from dano.sysid.pipeline import SysidConfig
+
+    scene = Scene(force_mode="centroid", integrator="explicit")
+    assert scene.force_mode is ForceMode.centroid and scene.integrator is Integrator.explicit and scene.substeps == 4
+    assert Primitive("p", "sphere", (0.1,), mode="free").mode is Mode.free
+    config = SysidConfig(fit=("friction",), interval="profile", initial="state")
+    assert config.interval is Interval.profile and config.initial == "state"
+    with pytest.raises(SceneError, match="^integrator must be one of 'implicit', 'explicit'; got 'centroid'"):
+        Scene(integrator="centroid")
+    with pytest.raises(SysidError, match="^loss must be one of 'l2', 'huber', 'cauchy'; got 'L1'"):
+        SysidConfig(fit=("friction",), loss="L1")

@@ -69,11 +69,12 @@ def simulate_demos(bunny, out: Path, video: bool = True) -> dict:
     from dano.sim import DanoBody, Primitive, Scene
     from dano.sim.render import render_video
     from dano.sim.run import Simulation
+    from dano.sim.scene import Mode
 
     lift = -float(np.min(np.asarray(bunny.body_points)[:, 2]))
     tilt = (0.97, 0.2, 0.1, 0.0)
     drop = Scene(duration=1.5, bodies=(DanoBody("bunny", bunny, pos=(0, 0, lift + 0.1), quat=tilt, angvel=(0, 0, 4)),))
-    ball = Primitive("ball", "sphere", (0.04,), pos=(-0.35, 0.0, 0.04), mode="free", mass=1.0, vel=(2.5, 0, 0))
+    ball = Primitive("ball", "sphere", (0.04,), pos=(-0.35, 0.0, 0.04), mode=Mode.free, mass=1.0, vel=(2.5, 0, 0))
     fig5 = Scene(
         duration=1.5,
         bodies=(

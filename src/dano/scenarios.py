@@ -5,16 +5,16 @@ an identification experiment. Identification (`dano.sysid.experiments`), traject
 
 import dataclasses
 from pathlib import Path
-from typing import Literal
 
 import jax.numpy as jnp
 import numpy as np
 
 from dano.contact import ContactParams
+from dano.contact.pairs import ForceMode
 from dano.math import quat_to_mat
 from dano.reference import load_reference
 from dano.sim.run import at_interval, at_rest
-from dano.sim.scene import DanoBody, Primitive, Scene
+from dano.sim.scene import DanoBody, Integrator, Mode, Primitive, Scene
 from dano.types import DANO
 
 
@@ -33,7 +33,7 @@ def slide_scene(
     friction: float = 0.5,
     velocity: tuple[float, float] = (1.6, 0.3),
     spin: float = 2.0,
-    force_mode: Literal["points", "centroid"] = "points",
+    force_mode: ForceMode | str = ForceMode.points,
 ) -> Scene:
     """A DANO launched along the table z = 0 with `velocity` (m/s) and `spin` (rad/s about z)."""
     body = DanoBody("object", dano, pos=(0.0, 0.0, resting_height(dano)), vel=(*velocity, 0.0), angvel=(0.0, 0.0, spin))
@@ -54,7 +54,7 @@ def push_scene(
     z = resting_height(dano)
     reach = float(np.max(np.linalg.norm(np.asarray(dano.body_points)[:, :2], axis=1)))
     x, y = (-(reach + radius + 0.02) * np.asarray(direction, dtype=float)).tolist()
-    pusher = Primitive(PUSHER, "sphere", (radius,), pos=(x, y, z), mode="actuated", mass=mass, collide=False)
+    pusher = Primitive(PUSHER, "sphere", (radius,), pos=(x, y, z), mode=Mode.actuated, mass=mass, collide=False)
     return Scene(
         bodies=(DanoBody("object", dano, pos=(0.0, 0.0, z)),), primitives=(pusher,),
         contact=ContactParams(sliding_friction=friction),
@@ -98,7 +98,7 @@ def reference_drop_scene(
     collider: str | Path,
     sliding_friction: float,
     duration: float = 7.0,
-    integrator: Literal["implicit", "explicit"] = "explicit",
+    integrator: Integrator | str = Integrator.explicit,
 ):
     """The scene of the reference's `bunny_trajectory_<mu>.csv` runs (Dojo.jl `bunny.jl`, commit c8ccf20e).
 
@@ -118,5 +118,5 @@ def reference_drop_scene(
         torsional_friction=0.01, rolling_friction=0.01, coulomb_gain=1.0, indicator_width=0.0,
     )  # fmt: skip
     body = DanoBody("bunny", bunny, pos=(0.0, 0.0, 1.1), quat=tuple(q0), vel=(2.0, 2.0, 1.0), angvel=tuple(w_world))
-    return Scene(timestep=0.002, substeps=1, duration=duration, bodies=(body,), contact=contact, force_mode="centroid",
-                 integrator=integrator)  # fmt: skip
+    return Scene(timestep=0.002, substeps=1, duration=duration, bodies=(body,), contact=contact,
+                 force_mode=ForceMode.centroid, integrator=integrator)  # fmt: skip

@@ -7,15 +7,17 @@ returns the value normalised (Python floats, tuples). Values traced under `jax.j
 cannot be checked on the host and pass through unchanged (`is_traced`).
 """
 
+import enum
 import math
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from dano.errors import DanoError
 
 Error = type[DanoError]
+E = TypeVar("E", bound=enum.StrEnum)
 
 
 def is_traced(value: Any) -> bool:
@@ -91,10 +93,32 @@ def vector(value: Any, name: str, error: Error, n: int, *, nonzero: bool = False
 
 def choice(value: Any, name: str, error: Error, options: Iterable[str]) -> str:
     """One of `options` (strings)."""
-    options = tuple(options)
+    options = tuple(str(o) for o in options)  # a string enumeration's members as their values
     if not isinstance(value, str) or value not in options:
         raise error(_named(name) + f"must be one of {', '.join(repr(o) for o in options)}; got {_show(value)}")
     return value
+
+
+def option(value: Any, name: str, error: Error, kind: type[E]) -> E:
+    """A member of the string enumeration `kind`, given as the member or its value ("points")."""
+    try:
+        return kind(value)
+    except (ValueError, TypeError):
+        choices = ", ".join(repr(m.value) for m in kind)
+        raise error(_named(name) + f"must be one of {choices}; got {_show(value)}") from None
+
+
+def settings(
+    obj: Any, error: Error, *, whole: dict[str, int] | None = None, positive: Iterable[str] = (),
+    nonnegative: Iterable[str] = (),
+) -> None:  # fmt: skip
+    """Checks a frozen settings dataclass's numeric fields in place (in its `__post_init__`): `whole`
+    maps a count's field name to its least value; `positive` and `nonnegative` name real fields."""
+    checked = {name: integer(getattr(obj, name), name, error, low=low) for name, low in (whole or {}).items()}
+    checked |= {name: number(getattr(obj, name), name, error, low=0.0, strict=True) for name in positive}
+    checked |= {name: number(getattr(obj, name), name, error, low=0.0) for name in nonnegative}
+    for name, value in checked.items():
+        object.__setattr__(obj, name, value)  # a frozen field, normalised
 
 
 def boolean(value: Any, name: str, error: Error) -> bool:

@@ -25,7 +25,7 @@ import numpy as np
 from dano.baselines.mesh import mujoco_mesh_spec
 from dano.baselines.models import CompareError, Model, _geometry
 from dano.sim.compile import add_primitive
-from dano.sim.scene import Primitive
+from dano.sim.scene import Mode, Primitive
 
 
 @dataclasses.dataclass(frozen=True)
@@ -57,7 +57,7 @@ class Pusher:
 
     def primitive(self) -> Primitive:
         """The sphere as a mocap-driven primitive named "pusher" at its start."""
-        return Primitive("pusher", "sphere", (self.radius,), tuple(self.start.tolist()), mode="mocap")
+        return Primitive("pusher", "sphere", (self.radius,), tuple(self.start.tolist()), mode=Mode.mocap)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -35,7 +35,7 @@ def _checked(check):
     return parse
 
 
-def _int(low: int):
+def _int(low: int | None = None):
     def check(text: str) -> int:
         try:
             value = int(text)

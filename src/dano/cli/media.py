@@ -17,7 +17,9 @@ from dano.cli.arguments import (
     _output,
     _parse_levels,
 )
+from dano.cli.configs import add_config, from_args
 from dano.errors import DanoError
+from dano.vision.configs import FitConfig, GridModel, TrackConfig
 
 
 def _add_render_views(sub) -> None:
@@ -42,9 +44,8 @@ def _add_fit_field(sub) -> None:
     f.add_argument(
         "-o", "--output", required=True, type=_output(".npz"), help="the solid field, a grid .npz (dano build reads it)"
     )
-    f.add_argument("--steps", type=_int(1), default=1000)
-    f.add_argument("--resolution", type=_int(4), default=64, help="grid nodes along the box's longest side")
-    f.add_argument("--samples", type=_int(2), default=128, help="samples per ray (default 128)")
+    add_config(f.add_argument_group("fitting (FitConfig)"), FitConfig, names={"n_samples": ["--samples"]})
+    add_config(f.add_argument_group("the grid (GridModel)"), GridModel)
     f.add_argument("--downscale", type=_int(1), default=1, help="box-average the images by this factor")
     f.add_argument("--split", default="train")
     f.add_argument("--raw", type=_output(".npz"), help="also write the fitted optical density (1/m) as a grid .npz")
@@ -71,11 +72,10 @@ def _add_track(sub) -> None:
         type=_checked(_numbers(7, "x,y,z,qw,qx,qy,qz", 3)),
         help="first frame's pose x,y,z,qw,qx,qy,qz (default: a guess from the first mask)",
     )
-    k.add_argument(
-        "--steps", "--iterations", dest="iterations", type=_int(1), default=60, help="Adam steps per frame (default 60)"
-    )
     k.add_argument("--json", action="store_true", help="one JSON object (output, frames, seconds, mean_mask_loss, ...)")
-    k.add_argument("--refine", type=_int(0), default=0, help="steps of joint refinement over all frames (default 0)")
+    names = {"iterations": ["--steps", "--iterations"], "first_iterations": ["--first-steps"],
+             "refine_iterations": ["--refine"], "n_samples": ["--samples"]}  # fmt: skip
+    add_config(k.add_argument_group("tracking (TrackConfig)"), TrackConfig, names=names)
     k.set_defaults(run=_track)
 
 
@@ -97,10 +97,10 @@ def _fit_field(args: argparse.Namespace) -> None:
 
     from dano.fields import GridField, save_grid
     from dano.vision.datasets import load_nerf_synthetic
-    from dano.vision.fit import FitConfig, GridModel, fit_field, solidify
+    from dano.vision.fit import fit_field, solidify
 
     views = load_nerf_synthetic(args.dataset, split=args.split, downscale=args.downscale)
-    config = FitConfig(GridModel(resolution=args.resolution), steps=args.steps, n_samples=args.samples)
+    config = from_args(FitConfig, args, model=from_args(GridModel, args))
     result = fit_field(views, config, key=jax.random.key(args.seed), progress=not args.json)
     assert isinstance(result.field, GridField)  # the default model, "grid"
     solid = solidify(result.field, views)
@@ -108,13 +108,15 @@ def _fit_field(args: argparse.Namespace) -> None:
     if args.raw:
         save_grid(args.raw, result.field)
     psnr = float(result.psnr[-50:].mean())
-    summary = {"output": args.output, "views": views.n_views, "steps": args.steps, "psnr_db": psnr,
+    summary = {"output": args.output, "views": views.n_views, "steps": config.steps, "psnr_db": psnr,
                "seconds": result.seconds, "bounds": result.bounds.tolist()}  # fmt: skip
     if args.json:
         print(json.dumps(summary))
     else:
         print(f"wrote {args.output}: the solid (density 1000 inside; build a DANO with dano build)")
-        print(f"{views.n_views} views, {args.steps} steps in {result.seconds:.1f} s, PSNR {summary['psnr_db']:.1f} dB")
+        print(
+            f"{views.n_views} views, {config.steps} steps in {result.seconds:.1f} s, PSNR {summary['psnr_db']:.1f} dB"
+        )
 
 
 def _track(args: argparse.Namespace) -> None:
@@ -123,7 +125,7 @@ def _track(args: argparse.Namespace) -> None:
     from dano.types import DANO
     from dano.vision.camera import load_camera
     from dano.vision.media import load_frames, load_masks
-    from dano.vision.track import TrackConfig, track
+    from dano.vision.track import track
 
     camera = load_camera(args.camera)
     frames, _ = load_frames(args.video)
@@ -134,7 +136,7 @@ def _track(args: argparse.Namespace) -> None:
     init = None
     if args.init:
         init = (np.asarray(args.init[:3]), np.asarray(args.init[3:]))
-    config = TrackConfig(iterations=args.iterations, refine_iterations=args.refine)
+    config = from_args(TrackConfig, args)
     result = track(field, camera, masks, config, init=init, progress=not args.json)
     positions = result.positions
     if args.frame == "com":  # what `dano sysid` reads: the centre of mass

@@ -127,6 +127,7 @@ def _sysid(args: argparse.Namespace) -> None:
     import dataclasses
 
     from dano.plotting import plot_identification
+    from dano.sysid.params import Initial
     from dano.sysid.pipeline import SysidConfig, identify_files
 
     if (args.scene is None) == (args.scene_option is None):
@@ -137,7 +138,7 @@ def _sysid(args: argparse.Namespace) -> None:
         raise DanoError("--fit names at least one parameter, e.g. --fit friction,mass_scale")
     config = SysidConfig(
         fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=args.gravity, body=args.body,
-        window=args.window, initial=args.fit_initial or "none", sigma=args.sigma,
+        window=args.window, initial=Initial(args.fit_initial or "none"), sigma=args.sigma,
         init=_parse_pairs(args.init, "--init", 1),
         bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
         rotation_weight=args.rotation_weight, settle=args.settle, interval=args.interval, level=args.level,
@@ -166,7 +167,7 @@ def _sysid(args: argparse.Namespace) -> None:
             raise DanoError("--init-from first-frames tracks the first masks itself: drop --traj")
         pose = args.start_pose
         start_pose = None if pose is None else (np.asarray(pose[:3]), np.asarray(pose[3:]))
-        config = dataclasses.replace(config, initial=args.fit_initial or "state")
+        config = dataclasses.replace(config, initial=Initial(args.fit_initial or "state"))
         problem, result = identify_mask_files(
             args.scene, args.masks, args.camera, config, start=args.traj[0] if args.traj else None,
             start_pose=start_pose, field=args.field, progress=not args.json,

@@ -9,8 +9,8 @@ one geometry function here and nothing else.
     "centroid" mode: one point, the overlap centroid chi with the whole overlap psi (eqs. 7-10).
 """
 
+import enum
 from collections.abc import Callable
-from typing import Literal
 
 import equinox as eqx
 import jax
@@ -20,7 +20,13 @@ from jaxtyping import Array, Float
 from dano.contact.overlap import HalfSpace, Primitive, expected_overlap, outward_normal
 from dano.math import normalize, safe_norm
 
-ForceMode = Literal["points", "centroid"]
+
+class ForceMode(enum.StrEnum):
+    """Where a pair's contact force acts: `points` each sampled point's own force at the point;
+    `centroid` the total at the overlap centroid χ, as in the paper (eq. 12)."""
+
+    points = "points"
+    centroid = "centroid"
 
 
 class Frame(eqx.Module):

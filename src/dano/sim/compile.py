@@ -11,8 +11,9 @@ import numpy as np
 from jaxtyping import Array
 
 from dano.contact import ContactParams, active
+from dano.contact.pairs import ForceMode
 from dano.sim.robots import check_servo_damping, link_geom, prepare_robot, robot_geoms, robot_spec
-from dano.sim.scene import DanoBody, Primitive, Scene, SceneError
+from dano.sim.scene import DanoBody, Integrator, Primitive, Scene, SceneError
 from dano.sim.world import MOVING, DanoState, Params, PrimGeom, World, pair_name, pairs
 
 
@@ -277,8 +278,8 @@ def _world(scene: Scene, model: mujoco.MjModel, robot_bodies: list[str]) -> Worl
         ground_normal=_unit(scene.ground_normal),
         substeps=int(scene.substeps),  # pyright: ignore[reportArgumentType]  (`__post_init__` sets it)
         dt=scene.step_size,
-        force_mode=scene.force_mode,
-        integrator=scene.integrator,
+        force_mode=ForceMode(scene.force_mode),
+        integrator=Integrator(scene.integrator),
         fallback_slot=model.nuserdata - 1,
         mujoco_moves=_mujoco_moves(scene, model),
     )

@@ -11,6 +11,7 @@ through the DANO contact model.
 """
 
 import dataclasses
+import enum
 from collections.abc import Callable
 from typing import Literal
 
@@ -18,6 +19,7 @@ from jaxtyping import Array
 
 from dano import validate as V
 from dano.contact import ContactParams
+from dano.contact.pairs import ForceMode
 from dano.errors import InvalidValueError
 from dano.types import DANO
 
@@ -25,8 +27,19 @@ Number = float | int
 Vec3 = tuple[Number, Number, Number]
 Quat = tuple[Number, Number, Number, Number]
 PrimitiveKind = Literal["sphere", "capsule", "box"]
-Mode = Literal["static", "free", "mocap", "actuated"]
-MODES: tuple[Mode, ...] = ("static", "free", "mocap", "actuated")
+
+
+class Mode(enum.StrEnum):
+    """How a primitive moves: `static` never; `free` on a free joint, as physics says; `mocap` along a
+    path it is given; `actuated` on three slide joints driven by motors (`ctrl`)."""
+
+    static = "static"
+    free = "free"
+    mocap = "mocap"
+    actuated = "actuated"
+
+
+MODES: tuple[Mode, ...] = tuple(Mode)
 
 
 class SceneError(InvalidValueError):
@@ -101,7 +114,7 @@ class Primitive:
     size: tuple[Number, ...]
     pos: Vec3 = (0.0, 0.0, 0.0)
     quat: Quat = (1.0, 0.0, 0.0, 0.0)
-    mode: Mode = "static"
+    mode: Mode | str = Mode.static
     mass: Number = 1.0
     vel: Vec3 = (0.0, 0.0, 0.0)
     angvel: Vec3 = (0.0, 0.0, 0.0)
@@ -112,7 +125,7 @@ class Primitive:
         V.boolean(self.collide, f"primitive {self.name!r}: collide", SceneError)
         where = f"primitive {self.name!r}"
         V.choice(self.kind, f"{where}: type", SceneError, SIZES)
-        V.choice(self.mode, f"{where}: mode", SceneError, MODES)
+        _set(self, "mode", V.option(self.mode, f"{where}: mode", SceneError, Mode))
         n = len(SIZES[self.kind])
         size = V.vector(self.size, f"{where}: size ({', '.join(SIZES[self.kind])})", SceneError, n)
         for name, value in zip(SIZES[self.kind], size, strict=True):
@@ -183,7 +196,15 @@ class Robot:
                                            for b in self.contact_bodies))  # fmt: skip
 
 
-DEFAULT_SUBSTEPS = {"implicit": 1, "explicit": 4}
+class Integrator(enum.StrEnum):
+    """How a step applies contact: `implicit` solves it in the DANOs' velocities (`dano.sim.implicit`);
+    `explicit` applies the wrench at the current state (the paper's scheme, `dano.sim.step`)."""
+
+    implicit = "implicit"
+    explicit = "explicit"
+
+
+DEFAULT_SUBSTEPS: dict[Integrator | str, int] = {Integrator.implicit: 1, Integrator.explicit: 4}
 """Steps per frame each integrator needs at the default 2 ms frame: the implicit step is stable at
 one, the explicit one's stiff springs need ~0.5 ms."""
 
@@ -229,16 +250,16 @@ class Scene:
     primitives: tuple[Primitive, ...] = ()
     contact: ContactParams = dataclasses.field(default_factory=ContactParams)
     pair_contact: tuple[tuple[tuple[str, str], ContactParams], ...] = ()
-    force_mode: Literal["points", "centroid"] = "points"
+    force_mode: ForceMode | str = ForceMode.points
     robot: Robot | None = None
-    integrator: Literal["implicit", "explicit"] = "implicit"
+    integrator: Integrator | str = Integrator.implicit
     contact_budget: int | None = None
 
     def __post_init__(self):
-        V.choice(self.integrator, "integrator", SceneError, DEFAULT_SUBSTEPS)
-        V.choice(self.force_mode, "force_mode", SceneError, ("points", "centroid"))
+        _set(self, "integrator", V.option(self.integrator, "integrator", SceneError, Integrator))
+        _set(self, "force_mode", V.option(self.force_mode, "force_mode", SceneError, ForceMode))
         if self.substeps is None:
-            _set(self, "substeps", DEFAULT_SUBSTEPS[self.integrator])
+            _set(self, "substeps", DEFAULT_SUBSTEPS[Integrator(self.integrator)])
         _set(self, "substeps", V.integer(self.substeps, "substeps", SceneError, low=1))
         _set(self, "timestep", V.positive(self.timestep, "timestep", SceneError))
         _set(self, "duration", V.positive(self.duration, "duration", SceneError))

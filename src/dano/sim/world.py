@@ -6,12 +6,13 @@ side, so the step, the identification and the optimiser read one small, hashable
 
 import dataclasses
 from collections.abc import Callable
-from typing import Literal
 
 import equinox as eqx
 from jaxtyping import Array, Float
 
 from dano.contact import ContactParams
+from dano.contact.pairs import ForceMode
+from dano.sim.scene import Integrator
 
 MOVING = ("free", "actuated")
 """Primitive modes whose body has degrees of freedom of its own."""
@@ -110,8 +111,8 @@ class World(eqx.Module):
     link_names: tuple[str, ...] = eqx.field(static=True)
     substeps: int = eqx.field(static=True)
     dt: float = eqx.field(static=True)
-    force_mode: Literal["points", "centroid"] = eqx.field(static=True)
-    integrator: str = eqx.field(static=True, default="implicit")
+    force_mode: ForceMode = eqx.field(static=True)
+    integrator: Integrator = eqx.field(static=True, default=Integrator.implicit)
     fallback_slot: int = eqx.field(static=True, default=-1)
     """`mjx.Data.userdata` slot counting the steps whose active sets overflowed (-1: none)."""
     mujoco_moves: bool = eqx.field(static=True, default=True)

@@ -2,20 +2,43 @@
 Gauss-Newton Hessian assembled from per-window blocks (each window differentiated in θ and its own
 initial state only), and the robust losses for data with outliers."""
 
+import enum
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from dano import validate as V
 from dano.sysid.params import SysidError
 from dano.sysid.problem import Problem, over_windows, residuals, window_residuals
+
+
+class Loss(enum.StrEnum):
+    """The loss on pose residuals (`robust`): `l2` least squares; `huber` and `cauchy` for data with
+    outliers (impacts the model misses, tracking failures)."""
+
+    l2 = "l2"
+    huber = "huber"
+    cauchy = "cauchy"
+
+
+class Jacobian(enum.StrEnum):
+    """How a window's residuals are differentiated: `fwd` forward mode (one tangent per unknown),
+    `rev` reverse mode (one cotangent per residual), `auto` reverse where a window has more unknowns
+    than residuals."""
+
+    auto = "auto"
+    fwd = "fwd"
+    rev = "rev"
+
 
 ROBUST_SCALE = 2.795
 """σ: where the robust losses start to discount a frame's position (or rotation) error, the 95 %
 quantile of the norm of a 3-vector of unit Gaussian noise (√χ²₃(0.95)): inliers keep their weight."""
 
 
-def robust(r: Float[Array, "... 6"], loss: str, c: float = ROBUST_SCALE) -> Float[Array, "... 6"]:
+def robust(r: Float[Array, "... 6"], loss: Loss | str, c: float = ROBUST_SCALE) -> Float[Array, "... 6"]:
     """Residuals whose squares sum to the robust loss: each frame's position and rotation error e
     (3-vectors, in σ) scaled by √(ρ(|e|²) / |e|²), so ½Σ|r|² = ½Σρ(|e|²) and Gauss-Newton on r is
     the "square-rooted" robust fit (Triggs et al., Bundle adjustment, §4.3).
@@ -24,7 +47,8 @@ def robust(r: Float[Array, "... 6"], loss: str, c: float = ROBUST_SCALE) -> Floa
     force); "cauchy" c² log(1 + u/c²) (an outlier's pull fades). Smooth, with the gradient of the
     identity at 0.
     """
-    if loss == "l2":
+    loss = V.option(loss, "the loss", SysidError, Loss)
+    if loss == Loss.l2:
         return r
     e = r.reshape(*r.shape[:-1], 2, 3)
     u = jnp.sum(e * e, axis=-1, keepdims=True)
@@ -32,14 +56,12 @@ def robust(r: Float[Array, "... 6"], loss: str, c: float = ROBUST_SCALE) -> Floa
     safe = jnp.where(small, c * c, u)  # the double `where`: no NaN gradient at e = 0
     if loss == "huber":
         ratio = jnp.where(u <= c * c, 1.0, (2.0 * c * jnp.sqrt(safe) - c * c) / safe)
-    elif loss == "cauchy":
-        ratio = jnp.where(small, 1.0, c * c * jnp.log1p(safe / (c * c)) / safe)
     else:
-        raise SysidError(f"the loss must be 'l2', 'huber' or 'cauchy', got {loss!r}")
+        ratio = jnp.where(small, 1.0, c * c * jnp.log1p(safe / (c * c)) / safe)
     return (e * jnp.sqrt(ratio)).reshape(r.shape)
 
 
-def compiled(problem: Problem, jac: str, loss_name: str = "l2"):
+def compiled(problem: Problem, jac: Jacobian, loss_name: Loss = Loss.l2):
     """(loss, residuals and normal equations) functions of (θ, δ, windows), jitted once per problem
     structure. The residuals returned are the plain ones (for the RMS errors); the loss and the
     normal equations are those of `robust(r, loss_name)`."""

@@ -2,6 +2,7 @@
 vector θ of them is written into and read from the simulator's `Params`."""
 
 import dataclasses
+import enum
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -16,6 +17,15 @@ from dano.sim.world import Params
 
 class SysidError(DanoError):
     """A system identification problem that cannot be set up as asked."""
+
+
+class Initial(enum.StrEnum):
+    """Which parts of each window's initial state are unknowns: `none` (read from the data),
+    `velocity`, or `state` (pose and velocity)."""
+
+    none = "none"
+    velocity = "velocity"
+    state = "state"
 
 
 CONTACT_KEYS = tuple(f.name for f in dataclasses.fields(ContactParams))

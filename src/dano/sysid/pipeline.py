@@ -1,12 +1,14 @@
 """Files in, identified parameters out: what `dano sysid` runs."""
 
 import dataclasses
+import enum
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
+from dano import validate as V
 from dano.sim.scene import Scene
 from dano.sim.toml import load_scene
 from dano.sysid.data import MIN_FRAMES, read_tracks
@@ -20,10 +22,20 @@ from dano.sysid.frames import (
     warn_implausible_units,
     with_gravity,
 )
-from dano.sysid.params import SysidError, canonical
+from dano.sysid.intervals import Interval
+from dano.sysid.objective import Loss
+from dano.sysid.params import Initial, SysidError, canonical
 from dano.sysid.problem import Problem, make_problem, named_after_scene
 from dano.sysid.solve import Identification, identify
 from dano.sysid.windows import Recording
+
+
+class Orientation(enum.StrEnum):
+    """Where the rotations come from: `track` the files' quaternions; `resting` none the tracker could
+    trust: the object lies on one of its stable faces (`resting_poses`) at one of `YAWS`."""
+
+    track = "track"
+    resting = "resting"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,18 +76,22 @@ class SysidConfig:
     gravity: Sequence[float] | Literal["fit"] | None = None
     body: str | None = None
     window: int | None = None
-    initial: str = "none"
+    initial: Initial | str = Initial.none
     sigma: float = 1e-3
     init: dict = dataclasses.field(default_factory=dict)
     bounds: dict = dataclasses.field(default_factory=dict)
     max_steps: int = 50
     rotation_weight: float = 1.0
     settle: float | None = None
-    interval: str = "gauss-newton"
+    interval: Interval | str = Interval.gauss_newton
     level: float = 0.95
     frames: tuple[int, int | None] | None = None
-    loss: str = "l2"
-    orientation: str = "track"
+    loss: Loss | str = Loss.l2
+    orientation: Orientation | str = Orientation.track
+
+    def __post_init__(self):
+        for name, kind in (("initial", Initial), ("interval", Interval), ("loss", Loss), ("orientation", Orientation)):
+            object.__setattr__(self, name, V.option(getattr(self, name), name, SysidError, kind))
 
 
 def load_recordings(
@@ -223,10 +239,10 @@ def _initial_loss(problem: Problem, init: dict, bounds: dict) -> float:
     """½Σr² at the initial guess (for choosing the sign of a fitted gravity axis)."""
     import jax.numpy as jnp
 
-    from dano.sysid.objective import compiled
+    from dano.sysid.objective import Jacobian, compiled
     from dano.sysid.solve import initial_guess
 
-    loss_fn, _ = compiled(problem, "fwd")
+    loss_fn, _ = compiled(problem, Jacobian.fwd)
     theta = initial_guess(problem, init, bounds)
     value = float(loss_fn(jnp.asarray(theta), jnp.zeros((problem.n_windows, problem.n_state)), problem.windows))
     return value if np.isfinite(value) else np.inf

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from dano import validate as V
 from dano._mjx import mjx
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul
 from dano.sim.compile import compile_scene
@@ -34,6 +35,7 @@ from dano.sim.scene import DanoBody, Primitive, Scene
 from dano.sim.step import rollout
 from dano.sim.world import Params, World
 from dano.sysid.params import (
+    Initial,
     SysidError,
     canonical,
     current_values,
@@ -94,7 +96,7 @@ class Problem:
     observed: tuple[Observed, ...]
     names: tuple[str, ...]
     n_frames: int
-    initial: str
+    initial: Initial
     sigma: float
     recordings: int
     compiler_options: dict | None = None
@@ -147,7 +149,7 @@ def make_problem(
     recordings: Sequence[Recording],
     fit: Sequence[str],
     window: int | None = None,
-    initial: str = "none",
+    initial: Initial | str = Initial.none,
     sigma: float = 1e-3,
     rotation_length: float | None = None,
     settle: float | None = None,
@@ -186,8 +188,7 @@ def make_problem(
         raise SysidError(f"a parameter is named twice in {list(fit)}")
     if not recordings:
         raise SysidError("no trajectories to fit")
-    if initial not in ("none", "velocity", "state"):
-        raise SysidError(f"initial must be 'none', 'velocity' or 'state', got {initial!r}")
+    initial = V.option(initial, "initial", SysidError, Initial)
     dt = recordings[0].dt
     for r in recordings:
         if abs(r.dt - dt) > 1e-6 * dt:

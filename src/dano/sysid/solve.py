@@ -17,10 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from dano import validate as V
 from dano.results import Result, finish
-from dano.sysid.intervals import gauss_newton_intervals, profile_intervals
+from dano.sysid.intervals import Interval, gauss_newton_intervals, profile_intervals
 from dano.sysid.lm import Objective, Point, Tolerances, levenberg_marquardt, logger
-from dano.sysid.objective import assemble, compiled, robust
+from dano.sysid.objective import Jacobian, Loss, assemble, compiled
 from dano.sysid.params import DEFAULT_BOUNDS, SysidError, canonical, current_values
 from dano.sysid.problem import Problem
 
@@ -70,11 +71,11 @@ class Identification:
     rms_position: float | None
     rms_rotation: float | None
     intervals: dict[str, tuple[float, float]]
-    interval: str = "gauss-newton"
+    interval: Interval = Interval.gauss_newton
     level: float = 0.95
     flags: tuple[str, ...] = ()
     adjustments: dict = dataclasses.field(default_factory=dict)
-    loss_function: str = "l2"
+    loss_function: Loss = Loss.l2
     rms_observation: float | None = None
 
     @property
@@ -152,11 +153,11 @@ def identify(
     ftol: float = 1e-3,
     rtol: float = 1e-9,
     xtol: float = 1e-8,
-    jac: str = "auto",
+    jac: Jacobian | str = Jacobian.auto,
     progress: bool = True,
-    interval: str = "gauss-newton",
+    interval: Interval | str = Interval.gauss_newton,
     level: float = 0.95,
-    loss: str = "l2",
+    loss: Loss | str = Loss.l2,
     throw: bool = False,
 ) -> Identification:
     """Fits `problem.names` (and the windows' initial states if the problem asks) by projected LM.
@@ -196,11 +197,11 @@ def identify(
         SysidError: bad settings, or a loss that is not finite at the initial guess.
         SolverError: `throw` and the fit did not converge.
     """
-    if interval not in ("gauss-newton", "profile"):
-        raise SysidError(f"interval must be 'gauss-newton' or 'profile', got {interval!r}")
+    interval = V.option(interval, "interval", SysidError, Interval)
+    jac = V.option(jac, "jac", SysidError, Jacobian)
+    loss = V.option(loss, "the loss", SysidError, Loss)
     if not 0.0 < level < 1.0:
         raise SysidError(f"the confidence level must be between 0 and 1, got {level}")
-    robust(jnp.zeros((1, 6)), loss)  # a bad name is refused before any work
     if loss != "l2" and problem.observation is not None:
         raise SysidError(f"the {loss!r} loss is for pose residuals; a problem fitted to masks uses 'l2'")
     names = problem.names
@@ -213,9 +214,9 @@ def identify(
     s_lo, s_hi = problem.state_bounds()
     y_lo = np.concatenate([lo, s_lo.reshape(-1)])
     y_hi = np.concatenate([hi, s_hi.reshape(-1)])
-    if jac == "auto":
+    if jac == Jacobian.auto:
         per_window = problem.n_residuals / max(n, 1)
-        jac = "rev" if p + s > per_window else "fwd"
+        jac = Jacobian.rev if p + s > per_window else Jacobian.fwd
     loss_fn, normal_fn = compiled(problem, jac, loss)
 
     def split(y):
@@ -246,7 +247,7 @@ def identify(
     finish(result, f"identification {result.value}: {message}", throw)
     stderr = _stderr(point.H, point.loss, problem, p)
     fit = objective, tol, problem.n_residuals, s == 0 and p == 1
-    intervals, flags = (profile_intervals if interval == "profile" else gauss_newton_intervals)(
+    intervals, flags = (profile_intervals if interval == Interval.profile else gauss_newton_intervals)(
         point, fit, labels, stderr, lo, hi, level
     )
     seconds = time.perf_counter() - start

@@ -27,113 +27,13 @@ import optax
 from jaxtyping import Array, Float, PRNGKeyArray
 from tqdm.auto import tqdm
 
-from dano.errors import DanoError
 from dano.fields import GridField, NeuralField
 from dano.fields.base import AbstractField, Bounds, as_bounds
 from dano.fields.grid import grid_nodes, trilinear
-from dano.fields.neural import NeuralFieldConfig
 from dano.vision.camera import camera_rays, project
+from dano.vision.configs import FitConfig, FitError, GridModel, MlpModel
 from dano.vision.datasets import Views
 from dano.vision.render import ray_box, render_opacity, render_rgb
-
-
-class FitError(DanoError):
-    """The views cannot be fitted (no masks and no bounds, a visual hull that is empty, bad settings)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class GridModel:
-    """A voxel grid of density and colour, trilinear (seconds per thousand steps on a CPU).
-
-    Attributes:
-        resolution: grid nodes along the box's longest side.
-        smoothness: weight of the grid's total variation (mean squared difference of neighbouring
-            nodes' raw density), which keeps unseen space and the inside free of noise.
-    """
-
-    resolution: int = 64
-    smoothness: float = 1e-4
-
-    def init(self, bounds: np.ndarray, scale: float, key: PRNGKeyArray) -> "AbstractRadiance":
-        """Nearly transparent (raw density -4: sigma ~ 2 % of `scale`)."""
-        lo, hi = bounds
-        shape = tuple(max(2, int(round(self.resolution * e / (hi - lo).max()))) for e in hi - lo)
-        return VoxelRadiance(jnp.full(shape, -4.0), jnp.zeros((*shape, 3)), scale, np.stack([lo, hi]))
-
-    @property
-    def regularisation(self) -> float:
-        return self.smoothness
-
-
-@dataclasses.dataclass(frozen=True)
-class MlpModel:
-    """A `NeuralField` and a colour network (smooth, ~10x slower to train than a grid; a learning
-    rate ~5e-3 suits it).
-
-    Attributes:
-        width, depth, n_frequencies: the density network (`NeuralFieldConfig`); the colour network
-            is as wide.
-    """
-
-    width: int = 64
-    depth: int = 3
-    n_frequencies: int = 5
-
-    def init(self, bounds: np.ndarray, scale: float, key: PRNGKeyArray) -> "AbstractRadiance":
-        """Nearly transparent (last bias -4: sigma ~ 2 % of `scale`)."""
-        net = NeuralFieldConfig(width=self.width, depth=self.depth, n_frequencies=self.n_frequencies,
-                                density_scale=scale)  # fmt: skip
-        k1, k2 = jax.random.split(key)
-        density = NeuralField(np.asarray(bounds), net, key=k1)
-        bias = density.mlp.layers[-1].bias
-        assert bias is not None  # the MLP of a `NeuralField` has biases
-        density = eqx.tree_at(lambda f: f.mlp.layers[-1].bias, density, jnp.full_like(bias, -4.0))
-        colour = eqx.nn.MLP(3 + 6 * self.n_frequencies, 3, self.width, 2, activation=jax.nn.softplus, key=k2)
-        return RadianceField(density, colour)
-
-    @property
-    def regularisation(self) -> float:
-        return 0.0
-
-
-MODELS = {"grid": GridModel, "mlp": MlpModel}
-"""The fitting back-ends by name (`FitConfig.model` may name one with its defaults)."""
-
-
-@dataclasses.dataclass(frozen=True)
-class FitConfig:
-    """Training settings.
-
-    Attributes:
-        model: the back-end and its own settings: `GridModel()` (default; or "grid") or `MlpModel()`
-            (or "mlp").
-        steps: optimiser steps.
-        batch_rays: rays per step.
-        n_samples: samples per ray, evenly spread over the ray's path through the box.
-        learning_rate: Adam's initial rate (cosine decay to 5 % of it); ~0.1 for a grid, ~5e-3 for an MLP.
-        mask_weight: weight of the opacity-vs-mask term.
-        opaque_samples: the density scale is set so that `opaque_samples` samples of a unit network
-            output make a ray 63 % opaque; it only sets the units the model starts in.
-        dtype: training precision ("float32" is twice as fast on a CPU as "float64"); the result
-            is returned in JAX's default float type.
-    """
-
-    model: GridModel | MlpModel | str = GridModel()
-    steps: int = 1000
-    batch_rays: int = 2048
-    n_samples: int = 128
-    learning_rate: float = 0.1
-    mask_weight: float = 1.0
-    opaque_samples: float = 0.5
-    dtype: str = "float32"
-
-    def __post_init__(self):
-        if isinstance(self.model, str):
-            if self.model not in MODELS:
-                raise FitError(f"model must be one of {', '.join(map(repr, MODELS))}, got {self.model!r}")
-            object.__setattr__(self, "model", MODELS[self.model]())  # a frozen field, normalised
-        elif not isinstance(self.model, GridModel | MlpModel):
-            raise FitError(f"model must be a GridModel, an MlpModel or its name, got {type(self.model).__name__}")
 
 
 def cosine_rate(rate: float, progress: Float[Array, ""]) -> Float[Array, ""]:
@@ -288,10 +188,6 @@ def fit_field(
     Raises:
         FitError: bad settings, no masks and no bounds, an empty visual hull, or a diverging loss.
     """
-    if config.steps < 1 or config.batch_rays < 1 or config.n_samples < 2:
-        raise FitError(f"steps, batch_rays must be >= 1 and n_samples >= 2, got {config}")
-    if config.dtype not in ("float32", "float64"):
-        raise FitError(f"dtype must be 'float32' or 'float64', got {config.dtype!r}")
     dtype = jnp.dtype(config.dtype)
     bounds = visual_hull_bounds(views) if bounds is None else np.asarray(bounds, dtype=float)
     rays = [camera_rays(c) for c in views.cameras]

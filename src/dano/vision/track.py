@@ -37,47 +37,15 @@ import optax
 from jaxtyping import Array, Float
 from tqdm.auto import tqdm
 
-from dano.errors import DanoError
 from dano.fields import AbstractField
 from dano.fields.grid import as_grid
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul, quat_to_mat
 from dano.surface import field_peak
 from dano.vision.camera import Camera, camera_rays
+from dano.vision.configs import TrackConfig, TrackError
 from dano.vision.fit import cosine_rate
 from dano.vision.media import box_downscale
 from dano.vision.render import render_peak
-
-
-class TrackError(DanoError):
-    """Tracking cannot run: masks and camera disagree, an empty mask, bad settings."""
-
-
-@dataclasses.dataclass(frozen=True)
-class TrackConfig:
-    """Tracker settings.
-
-    Attributes:
-        iterations: Adam steps per frame (`first_iterations` for the first frame).
-        learning_rate: Adam's rate on the pose increment; positions are in units of the object's
-            radius and rotations in radians, so one rate suits both.
-        n_samples: samples per ray through the object's bounding sphere.
-        barycentre_weight: weight of the barycentre term.
-        max_size: the tracker looks at a window around the object (`windows`); the masks are
-            box-averaged down until the window's longest side is at most this (pixels).
-        grid: nodes along each side of the baked field grid.
-        refine_iterations: Adam steps of the joint refinement over all frames (0: none).
-        smoothness: weight of the acceleration penalty in the refinement (per frame, in radius units).
-    """
-
-    iterations: int = 60
-    first_iterations: int = 300
-    learning_rate: float = 0.02
-    n_samples: int = 48
-    barycentre_weight: float = 1.0
-    max_size: int = 128
-    grid: int = 128
-    refine_iterations: int = 0
-    smoothness: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
