@@ -179,3 +179,29 @@ def test_each_fitting_back_end_holds_its_own_settings_behind_one_interface():
         sigma, colour = field(jnp.zeros((5, 3)))
         assert sigma.shape == (5,) and colour.shape == (5, 3) and np.all(np.asarray(sigma) > 0)
     assert GridModel().regularisation == 1e-4 and MlpModel().regularisation == 0.0
+
+
+def test_every_solver_reports_in_one_shape(tmp_path):
+    """fit_field, track, identify and iLQR return an `AbstractSolution`: the value found, how it
+    stopped and why, its stats. A fit whose loss becomes non-finite stops there: reported with the
+    last finite model (`throw=False`) or raised (`throw=True`, the default for a fit)."""
+    from dano.results import AbstractSolution, Result, SolverError
+    from dano.sysid.solve import Identification
+    from dano.trajopt.ilqr import Solution
+    from dano.vision.fit import FitResult
+    from dano.vision.track import TrackResult
+
+    for cls in (FitResult, TrackResult, Identification, Solution):
+        assert issubclass(cls, AbstractSolution)
+    render_views(BOX, tmp_path / "views", n_views=4, resolution=16, progress=False)
+    views = load_nerf_synthetic(tmp_path / "views")
+    fine = fit_field(views, FitConfig(steps=3, n_samples=8), key=jax.random.key(0), progress=False)
+    assert fine.result is Result.completed and fine.result.ok and not fine.converged
+    assert fine.value is fine.field and fine.stats["iterations"] == 3 == len(fine.loss)
+    wild = FitConfig(steps=30, n_samples=8, learning_rate=1e30)
+    bad = fit_field(views, wild, key=jax.random.key(0), progress=False, throw=False)
+    assert bad.result is Result.nonfinite and "lower the learning rate" in bad.message
+    assert bad.iterations < 30 and np.all(np.isfinite(bad.loss))
+    assert np.all(np.isfinite(np.asarray(bad.field.density)))
+    with pytest.raises(SolverError, match="^fit_field failed: the loss became non-finite: stopped at step 1"):
+        fit_field(views, wild, key=jax.random.key(0), progress=False)

@@ -1,6 +1,13 @@
-"""How every solver reports: one enumeration of how it stopped (`Result`, after Optimistix's
+"""How every solver reports: one shape of solution (`AbstractSolution`: the value found, how the
+solver stopped and why, its stats), one enumeration of how it stopped (`Result`, after Optimistix's
 `RESULTS`), `throw=` to raise instead of report (`SolverError`), and one JSON shape (`dano sysid
 --json`, `dano trajopt --json`).
+
+The solvers: `dano.sysid.identify` (Levenberg-Marquardt), `dano.trajopt.ilqr.solve` (constrained
+iLQR), `dano.vision.fit_field` and `dano.vision.track` (Adam, a fixed number of steps). `throw`
+defaults to False where an unconverged result is still an estimate worth reading (identification,
+trajectory optimisation) and to True where a failed one is not (a fit or track whose loss became
+non-finite).
 
 Every result object has the keys of `RESULT_KEYS`, keyed by the names as the user typed them:
 
@@ -16,7 +23,9 @@ Every result object has the keys of `RESULT_KEYS`, keyed by the names as the use
 A command adds its own keys beside these.
 """
 
+import abc
 import enum
+from typing import Any
 
 from dano.errors import DanoError
 
@@ -25,14 +34,21 @@ class Result(enum.Enum):
     """How a solver stopped; the value is its message for people. Only `successful` converged."""
 
     successful = "converged"
+    completed = "completed its fixed number of steps"
     max_steps_reached = "did not converge: iteration limit reached"
     stalled = "did not converge: no step lowers the objective (line search failed at the regularisation limit)"
     penalty_limit = "did not converge: penalty limit reached with the constraints violated"
     max_outer_reached = "did not converge: multiplier updates exhausted with the constraints violated"
+    nonfinite = "failed: the loss became non-finite"
 
     @property
     def converged(self) -> bool:
         return self is Result.successful
+
+    @property
+    def ok(self) -> bool:
+        """Converged, or a fixed-step solver that completed its steps."""
+        return self in (Result.successful, Result.completed)
 
 
 class SolverError(DanoError):
@@ -40,9 +56,39 @@ class SolverError(DanoError):
 
 
 def finish(result: Result, message: str, throw: bool) -> None:
-    """Raises `SolverError(message)` where `throw` and the solver did not converge."""
-    if throw and not result.converged:
+    """Raises `SolverError(message)` where `throw` and the solver did not converge (`Result.ok`)."""
+    if throw and not result.ok:
         raise SolverError(message)
+
+
+class AbstractSolution(abc.ABC):
+    """What every solver returns.
+
+    Attributes:
+        value: what it found (each solver names it too: `params`, `controls`, `field`, `positions`).
+        result: how it stopped (`Result`); `converged` where that is `Result.successful`.
+        message: why, in words, with the figures.
+        iterations: iterations (or optimiser steps) in all.
+        seconds: wall time, compilation included when it happened.
+        stats: how much work it took, by name (`iterations`, `seconds`, and the solver's own).
+    """
+
+    result: Result
+    message: str
+    iterations: int
+    seconds: float
+
+    @property
+    @abc.abstractmethod
+    def value(self) -> Any: ...
+
+    @property
+    def converged(self) -> bool:
+        return self.result.converged
+
+    @property
+    def stats(self) -> dict[str, float | int]:
+        return {"iterations": self.iterations, "seconds": self.seconds}
 
 
 RESULT_KEYS = (

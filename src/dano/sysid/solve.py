@@ -18,7 +18,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from dano import validate as V
-from dano.results import Result, finish
+from dano.results import AbstractSolution, Result, finish
 from dano.sysid.intervals import Interval, gauss_newton_intervals, profile_intervals
 from dano.sysid.lm import Objective, Point, Tolerances, levenberg_marquardt, logger
 from dano.sysid.objective import Jacobian, Loss, assemble, compiled
@@ -27,7 +27,7 @@ from dano.sysid.problem import Problem
 
 
 @dataclasses.dataclass(frozen=True)
-class Identification:
+class Identification(AbstractSolution):
     """The result of `identify`.
 
     Attributes:
@@ -79,8 +79,13 @@ class Identification:
     rms_observation: float | None = None
 
     @property
-    def converged(self) -> bool:
-        return self.result.converged
+    def value(self) -> dict[str, float]:
+        """The estimate, `params`."""
+        return self.params
+
+    @property
+    def stats(self) -> dict[str, float | int]:
+        return super().stats | {"loss": self.loss[-1]}
 
     def summary(self) -> dict:
         """The `dano sysid --json` object (`dano.results`), with the intervals' method and level, the

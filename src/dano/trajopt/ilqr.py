@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano.results import Result, finish
+from dano.results import AbstractSolution, Result, finish
 from dano.trajopt.pieces import (
     OptimalControlProblem,
     Pieces,
@@ -84,7 +84,7 @@ class Options:
 
 
 @dataclasses.dataclass(frozen=True)
-class Solution:
+class Solution(AbstractSolution):
     """What `solve` found.
 
     Attributes:
@@ -113,8 +113,13 @@ class Solution:
     multipliers: tuple[np.ndarray, np.ndarray]
 
     @property
-    def converged(self) -> bool:
-        return self.result.converged
+    def value(self) -> np.ndarray:
+        """The controls found, `controls` (T, m)."""
+        return self.controls
+
+    @property
+    def stats(self) -> dict[str, float | int]:
+        return super().stats | {"outer": self.outer, "cost": self.cost, "max_violation": self.max_violation}
 
 
 class _Iterate(NamedTuple):

@@ -30,6 +30,7 @@ from tqdm.auto import tqdm
 from dano.fields import GridField, NeuralField
 from dano.fields.base import AbstractField, Bounds, as_bounds
 from dano.fields.grid import grid_nodes, trilinear
+from dano.results import AbstractSolution, Result, finish
 from dano.vision.camera import camera_rays, project
 from dano.vision.configs import FitConfig, FitError, GridModel, MlpModel
 from dano.vision.datasets import Views
@@ -149,16 +150,21 @@ def _look_region(views: Views) -> tuple[np.ndarray, float]:
 
 
 @dataclasses.dataclass(frozen=True)
-class FitResult:
-    """The fitted model and its training curve.
+class FitResult(AbstractSolution):
+    """The fitted model and its training curve (`dano.results.AbstractSolution`).
 
     Attributes:
         field: the optical density (1/m): a `GridField` ("grid") or `NeuralField` ("mlp"); save it
-            with `save_grid` / `save_neural_field`, build a DANO from it with `build_dano`.
+            with `save_grid` / `save_neural_field`, build a DANO from it with `build_dano`. The
+            solution's `value`.
         model: density and colour together.
         bounds: (2, 3) the box it lives in.
-        loss, psnr: per step (PSNR of the colour, dB).
+        loss, psnr: per step taken (PSNR of the colour, dB).
         seconds: wall time of the training loop (compilation included).
+        result: `completed` (all `FitConfig.steps` taken) or `nonfinite` (stopped at the first
+            non-finite loss; the model is the last finite one).
+        message: in words.
+        iterations: optimiser steps taken.
     """
 
     field: GridField | NeuralField
@@ -167,6 +173,13 @@ class FitResult:
     loss: np.ndarray
     psnr: np.ndarray
     seconds: float
+    result: Result = Result.completed
+    message: str = ""
+    iterations: int = 0
+
+    @property
+    def value(self) -> GridField | NeuralField:
+        return self.field
 
 
 def fit_field(
@@ -177,6 +190,7 @@ def fit_field(
     *,
     key: PRNGKeyArray,
     progress: bool = True,
+    throw: bool = True,
 ) -> FitResult:
     """Fits a density and colour field to posed images (volume rendering, Adam).
 
@@ -184,9 +198,12 @@ def fit_field(
         views: images, cameras and (optionally) masks, e.g. from `load_nerf_synthetic`.
         bounds: (2, 3) box of the object, world frame; default: the masks' visual hull, padded.
         background: the colour behind the object in the images (white for NeRF-synthetic data).
+        throw: raise `SolverError` where the loss becomes non-finite (else the last finite model is
+            returned with `result` `nonfinite`).
 
     Raises:
-        FitError: bad settings, no masks and no bounds, an empty visual hull, or a diverging loss.
+        FitError: no masks and no bounds, or an empty visual hull.
+        SolverError: `throw` and the loss became non-finite.
     """
     dtype = jnp.dtype(config.dtype)
     bounds = visual_hull_bounds(views) if bounds is None else np.asarray(bounds, dtype=float)
@@ -232,19 +249,26 @@ def fit_field(
         return optax.apply_updates(params, updates), state, loss, mse
 
     losses, psnrs = np.zeros(config.steps), np.zeros(config.steps)
+    result, message, taken = Result.completed, f"{config.steps} steps", config.steps
     start = time.perf_counter()
     bar = tqdm(range(config.steps), desc="fit field", disable=not progress)
     for n in bar:
-        params, state, loss, mse = step(params, state, jax.random.fold_in(k_train, n))
+        new_params, new_state, loss, mse = step(params, state, jax.random.fold_in(k_train, n))
         losses[n], psnrs[n] = float(loss), -10.0 * math.log10(max(float(mse), 1e-12))
         if not np.isfinite(losses[n]):
-            raise FitError(f"the loss became non-finite at step {n}: lower the learning rate")
+            result, message, taken = Result.nonfinite, f"stopped at step {n}; lower the learning rate", n
+            break
+        params, state = new_params, new_state
         if n % 50 == 0 or n == config.steps - 1:
             bar.set_postfix(loss=f"{losses[n]:.2e}", psnr=f"{psnrs[n]:.1f} dB")
+    bar.close()
+    message = f"{result.value}: {message}"
+    finish(result, f"fit_field {message}", throw)
     seconds = time.perf_counter() - start
     params = jax.tree_util.tree_map(lambda a: a.astype(jnp.result_type(float)), params)
     model = eqx.combine(params, static)
-    return FitResult(model.density_field(), model, bounds, losses, psnrs, seconds)
+    return FitResult(model.density_field(), model, bounds, losses[:taken], psnrs[:taken], seconds, result=result,
+                     message=message, iterations=taken)  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)

@@ -40,6 +40,7 @@ from tqdm.auto import tqdm
 from dano.fields import AbstractField
 from dano.fields.grid import as_grid
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul, quat_to_mat
+from dano.results import AbstractSolution, Result, finish
 from dano.surface import field_peak
 from dano.vision.camera import Camera, camera_rays
 from dano.vision.configs import TrackConfig, TrackError
@@ -109,13 +110,31 @@ def _pose(s: Silhouette, base_pos, base_quat, delta):
 
 
 @dataclasses.dataclass(frozen=True)
-class TrackResult:
-    """Poses of the field frame per frame (world), the final loss per frame, and the wall time."""
+class TrackResult(AbstractSolution):
+    """Poses of the field frame per frame (world), the final loss per frame, and the wall time
+    (`dano.results.AbstractSolution`; `value` is (positions, quats)).
+
+    Attributes:
+        positions, quats: (n, 3), (n, 4) per frame tracked.
+        losses: (n,) each frame's loss at its pose.
+        seconds: wall time, compilation included.
+        result: `completed`, or `nonfinite` (stopped at the first frame whose loss is not finite;
+            the frames before it are returned).
+        message: in words.
+        iterations: Adam steps in all (per frame and in the refinement).
+    """
 
     positions: np.ndarray
     quats: np.ndarray
     losses: np.ndarray
     seconds: float
+    result: Result = Result.completed
+    message: str = ""
+    iterations: int = 0
+
+    @property
+    def value(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.positions, self.quats
 
 
 def downsample(masks: np.ndarray, camera: Camera, factor: int) -> tuple[np.ndarray, Camera]:
@@ -211,6 +230,7 @@ def track(
     config: TrackConfig = TrackConfig(),
     init: tuple[np.ndarray, np.ndarray] | None = None,
     progress: bool = True,
+    throw: bool = True,
 ) -> TrackResult:
     """Poses of `field`'s frame in each frame of a video, from its object masks.
 
@@ -218,9 +238,12 @@ def track(
         masks: (n, h, w) in [0, 1], 1 on the object, `camera`'s size.
         init: (position (3,), quat (4,)) of the field frame in the first frame; default: a guess from
             the first mask (see `initial_pose`), which assumes the object starts unrotated.
+        throw: raise `SolverError` where a frame's loss is not finite (else the frames before it
+            are returned, `result` `nonfinite`).
 
     Raises:
         TrackError: masks of another size than the camera's, or an empty mask.
+        SolverError: `throw` and a frame's loss was not finite.
     """
     masks = np.asarray(masks, dtype=float)
     if masks.ndim != 3 or masks.shape[1:] != (camera.height, camera.width):
@@ -259,6 +282,7 @@ def track(
     start = time.perf_counter()
     pos, quat = initial_pose(s, held_small[0], cam) if init is None else (np.asarray(init[0]), np.asarray(init[1]))
     positions, quats, losses = [], [], []
+    result, message, steps = Result.completed, f"{len(small)} frames", 0
     for k in tqdm(range(len(small)), desc="track", unit="frame", disable=not progress):
         guess_pos, guess_quat = jnp.asarray(pos, dtype=float), jnp.asarray(quat, dtype=float)
         if k >= 2:  # constant velocity: move on as between the last two frames
@@ -267,15 +291,26 @@ def track(
         n = config.first_iterations if k == 0 else config.iterations
         rays_k = tuple(r[k] for r in rays)
         p, q, value = solve(guess_pos, guess_quat, rays_k, targets[k], n)
+        steps += n
+        if not np.isfinite(float(value)):
+            result, message = Result.nonfinite, f"stopped at frame {k} of {len(small)}"
+            break
         positions.append(p)
         quats.append(q)
         losses.append(float(value))
         pos, quat = p, q
+    message = f"{result.value}: {message}"
+    finish(result, f"track {message}", throw)
+    if not positions:
+        return TrackResult(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), time.perf_counter() - start, result,
+                           message, steps)  # fmt: skip
     positions_a, quats_a = jnp.stack(positions), jnp.stack(quats)
-    if config.refine_iterations > 0:
+    if config.refine_iterations > 0 and result.ok:
         positions_a, quats_a = refine(s, rays, positions_a, quats_a, targets, config)
         losses = [float(v) for v in _frame_losses(s, rays, positions_a, quats_a, targets, config.barycentre_weight)]
-    return TrackResult(np.asarray(positions_a), np.asarray(quats_a), np.asarray(losses), time.perf_counter() - start)
+        steps += config.refine_iterations
+    return TrackResult(np.asarray(positions_a), np.asarray(quats_a), np.asarray(losses), time.perf_counter() - start,
+                       result, message, steps)  # fmt: skip
 
 
 def _frame_losses(s: Silhouette, rays, positions, quats, targets, weight):
