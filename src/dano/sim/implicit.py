@@ -35,22 +35,21 @@ velocities are held at zero. The reactions on robot links (driven by servos, so 
 pairs' forces with opposite sign, applied through `xfrc_applied` before `mjx.step`.
 """
 
-import equinox as eqx
+from typing import NamedTuple
+
 import jax
-import jax.core
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from dano._mjx import mjx
 from dano.contact import active
-from dano.contact.friction import Patch, patch_terms
+from dano.contact.friction import Patch
 from dano.contact.overlap import signed_distance
 from dano.contact.pairs import Frame
-from dano.contact.pairs import reaction as reaction_of
-from dano.contact.support import Support, dano_support, normal_terms, normal_velocity, overlap, primitive_support
+from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
-from dano.sim.newton import minimize_convex, newton, run_if, solve_implicit
+from dano.sim.contact_solve import ContactProblem, solved, untouched
 from dano.sim.step import (
     Partner,
     dano_bodies,
@@ -60,13 +59,8 @@ from dano.sim.step import (
     partners,
     primitive_frame,
     primitive_shape,
-    scatter,
 )
 from dano.sim.world import Params, World, pairs
-
-PASSES = 3
-"""Solves per step: the first without friction, each next one with friction at the normal forces
-the previous one delivered (so that they include the support's answer to friction's own torque)."""
 
 
 def _moved(f: Frame, xi: Float[Array, " 6"], V: Float[Array, " 6"]) -> Frame:
@@ -82,29 +76,6 @@ def _block_diag(blocks: list[Array]) -> Array:
         out = out.at[i : i + b.shape[0], i : i + b.shape[0]].set(b)
         i += b.shape[0]
     return out
-
-
-class _Sets(eqx.Module):
-    """Each pair's support and patch, the damper's lagged overlaps and the normal velocities at V~:
-    all the points, or their active sets."""
-
-    supports: tuple
-    patches: tuple
-    psi0: tuple
-    u_n0: tuple
-
-
-def friction_normal(N: Float[Array, " k"]) -> Float[Array, " k"]:
-    """The points' normal forces that friction scales with: the positive parts of N (k,), scaled
-    to add up to the pair's total. A point's spring and damper may pull (N < 0) while the pair
-    pushes; clipping alone then counts more support than the pair gives (in the first version of
-    this step, 10x for a box placed 0.5 mm into the floor, which lost a third of its 1 m/s in one
-    step). So the positive parts give where the support is, the total how much; a pair whose net
-    normal force pulls has no friction.
-    """
-    positive = jnp.maximum(N, 0.0)
-    total, raw = jnp.maximum(jnp.sum(N), 0.0), jnp.sum(positive)
-    return positive * (total / jnp.where(raw > 0, raw, 1.0))
 
 
 def _rotate(q: Float[Array, " 4"], R: Array, inertia: Array, L: Array, h: float) -> tuple[Array, Array]:
@@ -166,14 +137,6 @@ def _within_reach(shape, reach: float, a: Frame, b: Frame, h: float, delta) -> A
     return gap - sweep < delta + BROAD_MARGIN
 
 
-def _centroid(patch: Patch, psi: Array) -> Patch:
-    """The paper's centroid mode for friction: one point at chi carrying the whole pair."""
-    total = jnp.sum(psi)
-    mean = lambda x: (x @ psi / jnp.where(total > 0, total, 1.0))[:, None]  # noqa: E731
-    normal = patch.normal if patch.normal.shape[1] == 1 else normalize(mean(patch.normal)[:, 0])[:, None]
-    return Patch(mean(patch.r_a), mean(patch.r_b), mean(patch.u_b), patch.w_b, normal, total[None], patch.joint)
-
-
 def implicit_step(
     world: World,
     params: Params,
@@ -184,36 +147,55 @@ def implicit_step(
 ) -> mjx.Data:
     """One step of `world.dt` (module docstring). `m` is already `scaled_model(...)`.
 
-    One long function on purpose (~270 lines): its inner functions (the pairs' slots, sets,
-    objective, the solve's passes and the reactions) close over the step's pairs, frames, masses
-    and the free motion, and are traced once inside its `lax.cond` branches; as module functions
-    each would take a dozen of those as arguments. Read it top down: the free motion V~, the
-    partners, the objective over each pair's active set, the solve (`solved`: passes of
-    `minimize_convex`, the exact check of the dropped points, the dense fallback), the
-    reactions, then MuJoCo's step and the DANOs' own integration.
+    Top down: the free motion V~ of the unknowns (`_free_motion`), the pairs' points at the pose it
+    reaches (`_contact_problem`), the solve where a point is live (`dano.sim.contact_solve.solved`:
+    passes of the convex minimisation over each pair's active set, checked, or over all points),
+    the reactions, then MuJoCo's step and the DANOs' own integration (`_integrate`).
     """
-    h = world.dt
-    n = len(world.danos)
-    bodies, frames = dano_bodies(world, params), dano_frames(world, d)
-    quats = [d.qpos[a + 3 : a + 7] for a in world.dano_qpos]
-    pair_list = pairs(world)
-    kin = link_motion(m, d) if world.links else None
-    mates = partners(world, d, mocap_vel, kin)
-    # The unknowns V: 6 velocities per DANO, then per free or actuated primitive (solved jointly,
-    # see above; an actuated one slides without turning, so its 3 angular velocities are held at 0).
     free = tuple(k for k, p in enumerate(world.prims) if p.moving)
-    slot = {k: n + s for s, k in enumerate(free)}
+    f = _free_motion(world, params, m, d, free, external)
+    c = _contact_problem(world, params, m, d, mocap_vel, f, free)
+    V_next, over, xfrc = untouched(c)
+    if c.pair_list:
+        touching = jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in c.supports]))
+        V_next, over, xfrc = jax.lax.cond(touching, lambda: solved(c), lambda: untouched(c))
+    if external is not None:
+        keep = jnp.ones(xfrc.shape[0]).at[jnp.asarray(world.dano_body)].set(0.0)
+        xfrc = xfrc + external * keep[:, None]
+    d = _integrate(world, m, d, f, free, V_next, xfrc)
+    if world.fallback_slot >= 0:
+        d = d.replace(userdata=d.userdata.at[world.fallback_slot].add(over.astype(d.userdata.dtype)))
+    return d
+
+
+class _Free(NamedTuple):
+    """The unknowns' free motion: frames, masses, mass matrix M, V~, the velocities held at 0."""
+
+    frames: list[Frame]
+    masses: list
+    inertia_body: list[Array]
+    inertia_w: list[Array]
+    M: Array
+    V_free: Array
+    locked: np.ndarray
+
+
+def _free_motion(world: World, params: Params, m: mjx.Model, d: mjx.Data, free, external) -> _Free:
+    """The unknowns V: 6 velocities per DANO, then per free or actuated primitive (`free`; solved
+    jointly, see the module docstring; an actuated one slides without turning, so its 3 angular
+    velocities are held at 0), and where gravity, motors and known external wrenches take them."""
+    h, n = world.dt, len(world.danos)
+    bodies = dano_bodies(world, params)
     prim_body = [world.prims[k].body for k in free]
-    frames_all = list(frames) + [primitive_frame(world, k, d) for k in free]
+    frames = list(dano_frames(world, d)) + [primitive_frame(world, k, d) for k in free]
     masses = [b.mass for b in bodies] + [m.body_mass[b] for b in prim_body]
     inertia_body = [b.inertia for b in bodies] + [jnp.diag(m.body_inertia[b]) for b in prim_body]
-    inertia_w = [f.R @ J @ f.R.T for f, J in zip(frames_all, inertia_body, strict=True)]
+    inertia_w = [f.R @ J @ f.R.T for f, J in zip(frames, inertia_body, strict=True)]
     M = _block_diag([blk for mass, J in zip(masses, inertia_w, strict=True) for blk in (mass * jnp.eye(3), J)])
-    n_all = len(frames_all)
     body_ids = list(world.dano_body) + prim_body
-    locked = np.zeros(6 * n_all, bool)
+    locked = np.zeros(6 * len(frames), bool)
     V_free = []
-    for i, f in enumerate(frames_all):
+    for i, f in enumerate(frames):
         ext = jnp.zeros(6) if external is None else external[body_ids[i]]
         k = free[i - n] if i >= n else -1
         if k >= 0 and world.prims[k].mode == "actuated":  # weight compensated, driven by its motors
@@ -224,11 +206,23 @@ def implicit_step(
             continue
         v = f.v + h * (m.opt.gravity + ext[:3] / masses[i])
         V_free.append(jnp.concatenate([v, f.w + h * jnp.linalg.solve(inertia_w[i], ext[3:])]))
-    V_free = jnp.concatenate(V_free)
+    return _Free(frames, masses, inertia_body, inertia_w, M, jnp.concatenate(V_free), locked)
 
-    # The geometry, frozen at the pose the free motion reaches (so a contact that the step would
-    # reach acts in that step), and each pair's points' lever arms and partner velocities.
-    start = [_moved(f, h * V_free[6 * i : 6 * i + 6], V_free[6 * i : 6 * i + 6]) for i, f in enumerate(frames_all)]
+
+def _contact_problem(
+    world: World, params: Params, m: mjx.Model, d: mjx.Data, mocap_vel, f: _Free, free
+) -> ContactProblem:
+    """The step's contact problem: the free motion, and each pair's points with the geometry frozen
+    at the pose the free motion reaches (so a contact that the step would reach acts in that step),
+    their lever arms and their partner's velocities."""
+    h, n = world.dt, len(world.danos)
+    bodies = dano_bodies(world, params)
+    pair_list = pairs(world)
+    kin = link_motion(m, d) if world.links else None
+    mates = partners(world, d, mocap_vel, kin)
+    slot = {k: n + s for s, k in enumerate(free)}
+    V = f.V_free
+    start = [_moved(fr, h * V[6 * i : 6 * i + 6], V[6 * i : 6 * i + 6]) for i, fr in enumerate(f.frames)]
     # Where each pair's partner sits in V (a DANO or a free primitive), or -1 (moves at a known velocity).
     other = [
         mate.dano if mate.dano >= 0 else slot.get(k, -1) if kind == "primitive" else -1
@@ -254,184 +248,17 @@ def implicit_step(
             sup = Support(sup.at, sup.normal, sup.weight, sup.s0 + ahead, sup.gain, sup.smooth)
         supports.append(sup)
         patches.append(patch)
+    prim_body = [world.prims[k].body for k in free]
+    return ContactProblem(world, params, h, n, pair_list, mates, other, supports, patches, V, f.M, f.locked, f.frames,
+                          f.masses, prim_body, kin, jnp.zeros_like(d.xfrc_applied))  # fmt: skip
 
-    def slots(j) -> list[int]:
-        """Where pair j's velocity vector (V_a, or (V_a, V_b) with a partner in V) sits in V."""
-        i, o = pair_list[j][0], other[j]
-        return list(range(6 * i, 6 * i + 6)) + (list(range(6 * o, 6 * o + 6)) if o >= 0 else [])
 
-    def pair_velocity(j, V):
-        return V[jnp.asarray(slots(j))]
-
-    def scatter_pair(j, g, H):
-        """A pair's gradient (m,) and Hessian (m, m) into the (6N,) and (6N, 6N) of all unknowns."""
-        idx = jnp.asarray(slots(j))
-        size = 6 * n_all
-        return jnp.zeros(size).at[idx].add(g), jnp.zeros((size, size)).at[idx[:, None], idx[None, :]].add(H)
-
-    centroid = world.force_mode == "centroid"  # friction and damper at chi (the spring per point)
-
-    def point_sets(sups, pts) -> _Sets:
-        u_n0 = tuple(normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(pts))
-        # The damper's overlaps, lagged: at the pose the free motion reaches.
-        return _Sets(tuple(sups), tuple(pts), tuple(overlap(sup, sup.s0) for sup in sups), u_n0)
-
-    def with_friction(sets: _Sets, V, on):
-        """Each pair's friction patch at the normal forces delivered at the velocities V, times
-        `on` (0: no friction, 1)."""
-        out = []
-        for j, (p, sup, pt) in enumerate(zip(params.contact, sets.supports, sets.patches, strict=True)):
-            _, _, _, s, u_n = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], h, pair_velocity(j, V), centroid)
-            N = on * friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * sets.psi0[j] * u_n)
-            fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
-            out.append(_centroid(fr, N) if centroid else fr)
-        return out
-
-    def pair_terms(sets: _Sets, j, friction, V):
-        """Pair j's U + h R + h D (D with the friction patches, a list) at V, with its
-        gradient and Hessian w.r.t. the pair's velocity vector."""
-        Vj = pair_velocity(j, V)
-        p = params.contact[j]
-        sup, pt = sets.supports[j], sets.patches[j]
-        value, g, H, _, _ = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], h, Vj, centroid)
-        fv, fg, fH = patch_terms(p, friction[j], Vj)
-        return value + h * fv, g + h * fg, H + h * fH
-
-    def objective(sets: _Sets, friction):
-        def f(V):
-            e = V - V_free
-            value, g, H = 0.5 * e @ M @ e, M @ e, M
-            for j in range(len(pair_list)):
-                vj, gj, Hj = pair_terms(sets, j, friction, V)
-                gj, Hj = scatter_pair(j, gj, Hj)
-                value, g, H = value + vj, g + gj, H + Hj
-            if locked.any():  # held velocities: no gradient, a unit Hessian (Newton leaves them at 0)
-                g = jnp.where(locked, 0.0, g)
-                H = jnp.where(locked[:, None] | locked[None, :], jnp.eye(6 * n_all), H)
-            return value, g, H
-
-        return f
-
-    def solved():
-        """The pairs' contact solved: over each pair's active set, checked, or over all points; the
-        passes are one traced pass run PASSES times (they differ only in their data)."""
-
-        def full():  # all the points' sets, formed only where they are used (inside the branches)
-            return point_sets(supports, patches)
-
-        # The active set of each pair (`dano.contact.active`), where its budget is below its points.
-        budgets = [
-            world.danos[i].budget + (world.danos[mate.dano].budget if mate.dano >= 0 else 0)
-            for (i, _, _), mate in zip(pair_list, mates, strict=True)
-        ]
-        actives = [
-            active.choose(sup, k) if 0 < k < sup.s0.shape[0] else None for sup, k in zip(supports, budgets, strict=True)
-        ]
-        triples = list(zip(supports, patches, actives, strict=True))
-        taken = [active.take(sup, pt, a) if a is not None else (sup, pt) for sup, pt, a in triples]
-        sparse = point_sets([t[0] for t in taken], [t[1] for t in taken])
-        drops = [active.dropped(sup, pt, a) if a is not None else None for sup, pt, a in triples]
-        started_over = jnp.any(jnp.asarray([a.overflow for a in actives if a is not None] or [False]))
-
-        # Every point's normal velocity at V~, for the exact check (once per step, not per pass).
-        u_n0 = [normal_velocity(pt, pair_velocity(j, V_free))[0] for j, pt in enumerate(patches)]
-
-        def missed(V) -> Array:
-            """Whether a point that the active sets dropped is live at V (`dano.contact.active`)."""
-            out = started_over
-            for j, (a, drop) in enumerate(zip(actives, drops, strict=True)):
-                if a is None or drop is None:  # both or neither
-                    continue
-                dV = pair_velocity(j, V) - pair_velocity(j, V_free)
-
-                def exact(j=j, a=a):
-                    return active.missed(supports[j], patches[j], a, u_n0[j], pair_velocity(j, V), h)
-
-                # the exact check under a once-or-never loop: in a batch, only when some element needs it
-                safe = active.bound_holds(supports[j], drop, dV, h)
-                out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
-            return out
-
-        total_mass = sum(masses)
-        tol = 1e-20 * total_mass
-        # The first friction solve starts from the velocities the step starts with, not from the
-        # frictionless answer: a body that friction holds is near them, while without friction it
-        # may slip and turn (a resting box: 1.5 mm/s at its face, far out on the Coulomb law's flat
-        # part, where Newton needs ~20 damped steps to come back instead of ~4).
-        V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in frames_all])
-        sparse_step = any(a is not None for a in actives)
-
-        def one_pass(carry, k):
-            """Solve k: friction at the normal forces of solve k - 1 (none in the first, `PASSES`), over
-            the active sets, or over all points once a dropped point turns out live (`missed`)."""
-            V_before, over = carry
-            x0 = jnp.where(k == 1, V_now, V_before)
-            on = (k > 0).astype(V_before.dtype)
-            if not sparse_step:
-                sets = full()
-                return (minimize_convex(objective(sets, with_friction(sets, V_before, on)), x0, tol), over), V_before
-            small = objective(sparse, with_friction(sparse, V_before, on))
-
-            def dense():
-                sets = full()
-                return objective(sets, with_friction(sets, V_before, on))
-
-            def forward(x):
-                """Over the active sets, then over all points once a dropped point turns out live (once
-                over, the rest of the step is dense: its friction needs all the points)."""
-                trial = newton(small, x, tol)
-                now_over = over | missed(trial)
-                return run_if(now_over, lambda x: newton(dense(), x, tol), trial), now_over
-
-            def solved_over(V, now_over):  # the objective that was minimised
-                return jax.lax.cond(now_over, lambda V: dense()(V), small, V)
-
-            return solve_implicit(forward, solved_over, x0), V_before
-
-        last_on = jnp.asarray(float(PASSES > 1), V_free.dtype)
-
-        def reactions(V_next, V_before, over):
-            """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (the pair's force on the DANO
-            is -dT/dV_a / h)."""
-            xfrc = jnp.zeros_like(d.xfrc_applied)
-            for s, body in enumerate(prim_body):  # a free primitive: the wrench that takes it to V'
-                e = slice(6 * (n + s), 6 * (n + s) + 6)
-                xfrc = scatter(xfrc, body, M[e, e] @ (V_next[e] - V_free[e]) / h)
-            for j, ((i, kind, _), mate) in enumerate(zip(pair_list, mates, strict=True)):
-                if mate.body < 0 or other[j] >= 0:
-                    continue
-                if sparse_step:  # solved over the active sets, or over all points if they overflowed
-
-                    def grad_of(sets, j=j):
-                        return pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
-
-                    g = jax.lax.cond(over, lambda: grad_of(full()), lambda: grad_of(sparse))
-                else:
-                    sets = full()
-                    g = pair_terms(sets, j, with_friction(sets, V_before, last_on), V_next)[1]
-                if kind == "link":
-                    assert kin is not None  # `link_motion` ran: the world has links
-                    centre = kin.xipos[mate.body]
-                else:
-                    centre = mate.frame.x
-                xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / h, frames[i].x, centre))
-            return xfrc
-
-        (V_next, over), befores = jax.lax.scan(one_pass, (V_free, jnp.zeros((), bool)), jnp.arange(PASSES))
-        return V_next, over, reactions(V_next, befores[-1], over)
-
-    def untouched():
-        """No point of any pair is live where the free motion goes: V~ is the minimiser (every
-        contact term is flat there), no check and no reaction."""
-        return V_free, jnp.zeros((), bool), jnp.zeros_like(d.xfrc_applied)
-
-    V_next, over, xfrc = untouched()
-    if pair_list:
-        touching = jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in supports]))
-        V_next, over, xfrc = jax.lax.cond(touching, solved, untouched)
-    if external is not None:
-        keep = jnp.ones(xfrc.shape[0]).at[jnp.asarray(world.dano_body)].set(0.0)
-        xfrc = xfrc + external * keep[:, None]
+def _integrate(world: World, m: mjx.Model, d: mjx.Data, f: _Free, free, V_next, xfrc) -> mjx.Data:
+    """MuJoCo's step with the reactions (or, where it would move nothing but actuated slides, their
+    Euler step here), then the DANOs' own: v' gives x, the world angular momentum I_w w' is held
+    while the rotation follows it (`_rotate`)."""
+    h, n = world.dt, len(world.danos)
+    quats = [d.qpos[a + 3 : a + 7] for a in world.dano_qpos]  # at the step's start
     if mujoco_moves(world, m):
         d = mjx_step(m, d.replace(xfrc_applied=xfrc))
         qpos, qvel = d.qpos, d.qvel
@@ -442,14 +269,10 @@ def implicit_step(
             a, v, lin = world.prims[k].qpos, world.prims[k].qvel, V_next[6 * (n + s) : 6 * (n + s) + 3]
             qpos = qpos.at[a : a + 3].add(h * lin)
             qvel = qvel.at[v : v + 3].set(lin)
-
     V_next = V_next[: 6 * n].reshape(n, 6)
     for i, (a, v) in enumerate(zip(world.dano_qpos, world.dano_qvel, strict=True)):
-        f, b = frames[i], bodies[i]
-        q1, w_body = _rotate(quats[i], f.R, b.inertia, inertia_w[i] @ V_next[i, 3:], h)
-        qpos = qpos.at[a : a + 3].set(f.x + h * V_next[i, :3]).at[a + 3 : a + 7].set(q1)
+        fr, J = f.frames[i], f.inertia_body[i]
+        q1, w_body = _rotate(quats[i], fr.R, J, f.inertia_w[i] @ V_next[i, 3:], h)
+        qpos = qpos.at[a : a + 3].set(fr.x + h * V_next[i, :3]).at[a + 3 : a + 7].set(q1)
         qvel = qvel.at[v : v + 3].set(V_next[i, :3]).at[v + 3 : v + 6].set(w_body)
-    d = d.replace(qpos=qpos, qvel=qvel)
-    if world.fallback_slot >= 0:
-        d = d.replace(userdata=d.userdata.at[world.fallback_slot].add(over.astype(d.userdata.dtype)))
-    return d
+    return d.replace(qpos=qpos, qvel=qvel)

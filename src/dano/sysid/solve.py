@@ -215,40 +215,14 @@ def identify(
     lo, hi = resolve_bounds(names, bounds)
     theta, clipped = _initial_guess(problem, init, bounds)
     adjustments = {**problem.adjustments, **({"init_clipped_to_bounds": clipped} if clipped else {})}
-    y = np.concatenate([theta, np.zeros(n * s)])
-    s_lo, s_hi = problem.state_bounds()
-    y_lo = np.concatenate([lo, s_lo.reshape(-1)])
-    y_hi = np.concatenate([hi, s_hi.reshape(-1)])
-    if jac == Jacobian.auto:
-        per_window = problem.n_residuals / max(n, 1)
-        jac = Jacobian.rev if p + s > per_window else Jacobian.fwd
-    loss_fn, normal_fn = compiled(problem, jac, loss)
-
-    def split(y):
-        return jnp.asarray(y[:p]), jnp.asarray(y[p:].reshape(n, s))
-
-    def evaluate(y):
-        r, parts = normal_fn(*split(y), problem.windows)
-        return (r, *assemble(p, n, s, parts))
-
+    objective = _objective(problem, lo, hi, jac, loss)
     start = time.perf_counter()
-    point = Point(y, *evaluate(y))
+    y = np.concatenate([theta, np.zeros(n * s)])
+    point = Point(y, *objective.evaluate(y))
     if not np.isfinite(point.loss):
         raise SysidError("the loss is not finite at the initial guess: the simulation blows up there")
-    history = [point.loss]
-    bar = tqdm(total=max_steps, desc="sysid", disable=None if progress else True, leave=False)
     tol = Tolerances(gtol, ftol, rtol, xtol)
-    objective = Objective(evaluate, lambda y: float(loss_fn(*split(y), problem.windows)), y_lo, y_hi)
-    result, message = Result.max_steps_reached, ""
-    # Stage 1 fits θ with the initial states held as read from the data; stage 2 frees them. From a
-    # poor θ, fitting states at once can wander into a wrong basin (e.g. a fast spin that mimics low
-    # friction); started from stage 1's θ the joint fit stays in the right one.
-    stages = [np.arange(y.size) >= p, np.zeros(y.size, bool)] if s else [np.zeros(y.size, bool)]
-    for hold in stages:
-        point, result, message = levenberg_marquardt(
-            point, objective, hold, max_steps - (len(history) - 1), tol, logger(history, bar)
-        )
-    bar.close()
+    point, result, message, history = _staged(point, objective, p, s, max_steps, tol, progress)
     finish(result, f"identification {result.value}: {message}", throw)
     stderr = _stderr(point.H, point.loss, problem, p)
     fit = objective, tol, problem.n_residuals, s == 0 and p == 1
@@ -265,6 +239,47 @@ def identify(
         intervals=intervals, interval=interval, level=level, flags=tuple(flags), adjustments=adjustments,
         loss_function=loss,
     )  # fmt: skip
+
+
+def _objective(problem: Problem, lo: np.ndarray, hi: np.ndarray, jac: Jacobian, loss: Loss) -> Objective:
+    """The loss over every unknown y = (θ, the windows' initial-state corrections δ), as LM sees it:
+    its residuals and normal equations, the loss alone, and the bounds of y."""
+    p, n, s = len(problem.names), problem.n_windows, problem.n_state
+    s_lo, s_hi = problem.state_bounds()
+    y_lo = np.concatenate([lo, s_lo.reshape(-1)])
+    y_hi = np.concatenate([hi, s_hi.reshape(-1)])
+    if jac == Jacobian.auto:
+        per_window = problem.n_residuals / max(n, 1)
+        jac = Jacobian.rev if p + s > per_window else Jacobian.fwd
+    loss_fn, normal_fn = compiled(problem, jac, loss)
+
+    def split(y):
+        return jnp.asarray(y[:p]), jnp.asarray(y[p:].reshape(n, s))
+
+    def evaluate(y):
+        r, parts = normal_fn(*split(y), problem.windows)
+        return (r, *assemble(p, n, s, parts))
+
+    return Objective(evaluate, lambda y: float(loss_fn(*split(y), problem.windows)), y_lo, y_hi)
+
+
+def _staged(
+    point: Point, objective: Objective, p: int, s: int, max_steps: int, tol: Tolerances, progress: bool
+) -> tuple[Point, Result, str, list[float]]:
+    """LM from `point` in two stages: θ with the initial states held as read from the data, then
+    everything. From a poor θ, fitting states at once can wander into a wrong basin (e.g. a fast
+    spin that mimics low friction); started from stage 1's θ the joint fit stays in the right one.
+    Returns the last iterate, how and why it stopped, and the loss history."""
+    history = [point.loss]
+    result, message = Result.max_steps_reached, ""
+    size = point.y.size
+    stages = [np.arange(size) >= p, np.zeros(size, bool)] if s else [np.zeros(size, bool)]
+    with tqdm(total=max_steps, desc="sysid", disable=None if progress else True, leave=False) as bar:
+        for hold in stages:
+            point, result, message = levenberg_marquardt(
+                point, objective, hold, max_steps - (len(history) - 1), tol, logger(history, bar)
+            )
+    return point, result, message, history
 
 
 def _stderr(H: np.ndarray, loss: float, problem: Problem, p: int) -> list[float]:

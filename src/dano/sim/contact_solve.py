@@ -1,0 +1,298 @@
+"""The implicit step's contact problem and its solve (`dano.sim.implicit` builds it each step).
+
+`ContactProblem` holds what the step has found before the solve: the unknowns' free motion V~ and
+mass matrix, each pair's support and patch (all its points) and who its partner is. The functions
+below are the objective of the module docstring of `dano.sim.implicit` over it, pair by pair, and
+its solve (`solved`): over each pair's active set (`dano.contact.active`), checked exactly against
+the points it dropped, or over all points once one of them turns out live.
+"""
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from dano._mjx import mjx
+from dano.contact import active
+from dano.contact.friction import Patch, patch_terms
+from dano.contact.pairs import Frame
+from dano.contact.pairs import reaction as reaction_of
+from dano.contact.support import Support, normal_terms, normal_velocity, overlap
+from dano.math import normalize
+from dano.sim.newton import minimize_convex, newton, run_if, solve_implicit
+from dano.sim.step import Partner, scatter
+from dano.sim.world import Params, World
+
+PASSES = 3
+"""Solves per step: the first without friction, each next one with friction at the normal forces
+the previous one delivered (so that they include the support's answer to friction's own torque)."""
+
+
+class _Sets(eqx.Module):
+    """Each pair's support and patch, the damper's lagged overlaps and the normal velocities at V~:
+    all the points, or their active sets."""
+
+    supports: tuple
+    patches: tuple
+    psi0: tuple
+    u_n0: tuple
+
+
+def friction_normal(N: Float[Array, " k"]) -> Float[Array, " k"]:
+    """The points' normal forces that friction scales with: the positive parts of N (k,), scaled
+    to add up to the pair's total. A point's spring and damper may pull (N < 0) while the pair
+    pushes; clipping alone then counts more support than the pair gives (in the first version of
+    this step, 10x for a box placed 0.5 mm into the floor, which lost a third of its 1 m/s in one
+    step). So the positive parts give where the support is, the total how much; a pair whose net
+    normal force pulls has no friction.
+    """
+    positive = jnp.maximum(N, 0.0)
+    total, raw = jnp.maximum(jnp.sum(N), 0.0), jnp.sum(positive)
+    return positive * (total / jnp.where(raw > 0, raw, 1.0))
+
+
+def _centroid(patch: Patch, psi: Array) -> Patch:
+    """The paper's centroid mode for friction: one point at chi carrying the whole pair."""
+    total = jnp.sum(psi)
+    mean = lambda x: (x @ psi / jnp.where(total > 0, total, 1.0))[:, None]  # noqa: E731
+    normal = patch.normal if patch.normal.shape[1] == 1 else normalize(mean(patch.normal)[:, 0])[:, None]
+    return Patch(mean(patch.r_a), mean(patch.r_b), mean(patch.u_b), patch.w_b, normal, total[None], patch.joint)
+
+
+class ContactProblem(NamedTuple):
+    """One step's contact problem, as the solve sees it (built by `dano.sim.implicit.implicit_step`).
+
+    Attributes:
+        world, params, h: the scene, its parameters and the step.
+        n: DANOs; their 6 velocities come first in V, then each free or actuated primitive's.
+        pair_list: the pairs (`dano.sim.world.pairs`) and `mates` their partners.
+        other: where each pair's partner sits in V (a DANO or a free primitive), or -1 (it moves
+            at a known velocity).
+        supports, patches: each pair's points at the pose the free motion reaches.
+        V_free: V~ (6 n_all,); M its mass matrix; `locked` the velocities held at 0.
+        frames: the unknowns' frames at the step's start; `masses` their masses.
+        prim_body: the MuJoCo bodies of the free primitives in V.
+        kin: the robot links' motion (`link_motion`), or None.
+        xfrc: zeros shaped like `mjx.Data.xfrc_applied`.
+    """
+
+    world: World
+    params: Params
+    h: float
+    n: int
+    pair_list: tuple[tuple[int, str, int], ...]
+    mates: tuple[Partner, ...]
+    other: list[int]
+    supports: list[Support]
+    patches: list[Patch]
+    V_free: Array
+    M: Array
+    locked: np.ndarray
+    frames: list[Frame]
+    masses: list
+    prim_body: list
+    kin: mjx.Data | None
+    xfrc: Array
+
+    @property
+    def centroid(self) -> bool:  # friction and damper at chi (the spring per point)
+        return self.world.force_mode == "centroid"
+
+
+def slots(c: ContactProblem, j: int) -> list[int]:
+    """Where pair j's velocity vector (V_a, or (V_a, V_b) with a partner in V) sits in V."""
+    i, o = c.pair_list[j][0], c.other[j]
+    return list(range(6 * i, 6 * i + 6)) + (list(range(6 * o, 6 * o + 6)) if o >= 0 else [])
+
+
+def pair_velocity(c: ContactProblem, j: int, V: Array) -> Array:
+    return V[jnp.asarray(slots(c, j))]
+
+
+def scatter_pair(c: ContactProblem, j: int, g: Array, H: Array) -> tuple[Array, Array]:
+    """A pair's gradient (m,) and Hessian (m, m) into the (6N,) and (6N, 6N) of all unknowns."""
+    idx = jnp.asarray(slots(c, j))
+    size = c.V_free.shape[0]
+    return jnp.zeros(size).at[idx].add(g), jnp.zeros((size, size)).at[idx[:, None], idx[None, :]].add(H)
+
+
+def point_sets(c: ContactProblem, sups, pts) -> _Sets:
+    u_n0 = tuple(normal_velocity(pt, pair_velocity(c, j, c.V_free))[0] for j, pt in enumerate(pts))
+    # The damper's overlaps, lagged: at the pose the free motion reaches.
+    return _Sets(tuple(sups), tuple(pts), tuple(overlap(sup, sup.s0) for sup in sups), u_n0)
+
+
+def with_friction(c: ContactProblem, sets: _Sets, V: Array, on: Array) -> list[Patch]:
+    """Each pair's friction patch at the normal forces delivered at the velocities V, times `on`
+    (0: no friction, 1)."""
+    out = []
+    for j, (p, sup, pt) in enumerate(zip(c.params.contact, sets.supports, sets.patches, strict=True)):
+        _, _, _, s, u_n = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], c.h, pair_velocity(c, j, V), c.centroid)
+        N = on * friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * sets.psi0[j] * u_n)
+        fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
+        out.append(_centroid(fr, N) if c.centroid else fr)
+    return out
+
+
+def pair_terms(c: ContactProblem, sets: _Sets, j: int, friction: list[Patch], V: Array):
+    """Pair j's U + h R + h D (D with the friction patches) at V, with its gradient and Hessian
+    w.r.t. the pair's velocity vector."""
+    Vj = pair_velocity(c, j, V)
+    p = c.params.contact[j]
+    sup, pt = sets.supports[j], sets.patches[j]
+    value, g, H, _, _ = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], c.h, Vj, c.centroid)
+    fv, fg, fH = patch_terms(p, friction[j], Vj)
+    return value + c.h * fv, g + c.h * fg, H + c.h * fH
+
+
+def objective(c: ContactProblem, sets: _Sets, friction: list[Patch]):
+    """V -> (value, gradient, Hessian) of the step's objective over `sets`, friction fixed."""
+
+    def f(V):
+        e = V - c.V_free
+        value, g, H = 0.5 * e @ c.M @ e, c.M @ e, c.M
+        for j in range(len(c.pair_list)):
+            vj, gj, Hj = pair_terms(c, sets, j, friction, V)
+            gj, Hj = scatter_pair(c, j, gj, Hj)
+            value, g, H = value + vj, g + gj, H + Hj
+        if c.locked.any():  # held velocities: no gradient, a unit Hessian (Newton leaves them at 0)
+            g = jnp.where(c.locked, 0.0, g)
+            H = jnp.where(c.locked[:, None] | c.locked[None, :], jnp.eye(c.V_free.shape[0]), H)
+        return value, g, H
+
+    return f
+
+
+class _Active(NamedTuple):
+    """The pairs' active sets (None where a pair is solved over all its points), the points they
+    dropped, the sets over the active points, and whether a set overflowed at the start."""
+
+    actives: list
+    drops: list
+    sparse: _Sets
+    started_over: Array
+
+
+def active_sets(c: ContactProblem) -> _Active:
+    """The active set of each pair (`dano.contact.active`), where its budget is below its points."""
+    budgets = [
+        c.world.danos[i].budget + (c.world.danos[mate.dano].budget if mate.dano >= 0 else 0)
+        for (i, _, _), mate in zip(c.pair_list, c.mates, strict=True)
+    ]
+    actives = [
+        active.choose(sup, k) if 0 < k < sup.s0.shape[0] else None for sup, k in zip(c.supports, budgets, strict=True)
+    ]
+    triples = list(zip(c.supports, c.patches, actives, strict=True))
+    taken = [active.take(sup, pt, a) if a is not None else (sup, pt) for sup, pt, a in triples]
+    sparse = point_sets(c, [t[0] for t in taken], [t[1] for t in taken])
+    drops = [active.dropped(sup, pt, a) if a is not None else None for sup, pt, a in triples]
+    started_over = jnp.any(jnp.asarray([a.overflow for a in actives if a is not None] or [False]))
+    return _Active(actives, drops, sparse, started_over)
+
+
+def missed(c: ContactProblem, sets: _Active, u_n0: list, V: Array) -> Array:
+    """Whether a point that the active sets dropped is live at V (`dano.contact.active`); `u_n0`
+    every point's normal velocity at V~."""
+    out = sets.started_over
+    for j, (a, drop) in enumerate(zip(sets.actives, sets.drops, strict=True)):
+        if a is None or drop is None:  # both or neither
+            continue
+        dV = pair_velocity(c, j, V) - pair_velocity(c, j, c.V_free)
+
+        def exact(j=j, a=a):
+            return active.missed(c.supports[j], c.patches[j], a, u_n0[j], pair_velocity(c, j, V), c.h)
+
+        # the exact check under a once-or-never loop: in a batch, only when some element needs it
+        safe = active.bound_holds(c.supports[j], drop, dV, c.h)
+        out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
+    return out
+
+
+def solved(c: ContactProblem) -> tuple[Array, Array, Array]:
+    """The pairs' contact solved: over each pair's active set, checked, or over all points; the
+    passes are one traced pass run `PASSES` times (they differ only in their data). Returns V', whether
+    a dropped point turned out live (the step went dense), and the reactions (`xfrc_applied`)."""
+    sets = active_sets(c)
+    sparse_step = any(a is not None for a in sets.actives)
+    # Every point's normal velocity at V~, for the exact check (once per step, not per pass).
+    u_n0 = [normal_velocity(pt, pair_velocity(c, j, c.V_free))[0] for j, pt in enumerate(c.patches)]
+    tol = 1e-20 * sum(c.masses)
+    # The first friction solve starts from the velocities the step starts with, not from the
+    # frictionless answer: a body that friction holds is near them, while without friction it
+    # may slip and turn (a resting box: 1.5 mm/s at its face, far out on the Coulomb law's flat
+    # part, where Newton needs ~20 damped steps to come back instead of ~4).
+    V_now = jnp.concatenate([jnp.concatenate([f.v, f.w]) for f in c.frames])
+
+    def full():  # all the points' sets, formed only where they are used (inside the branches)
+        return point_sets(c, c.supports, c.patches)
+
+    def one_pass(carry, k):
+        """Solve k: friction at the normal forces of solve k - 1 (none in the first, `PASSES`), over
+        the active sets, or over all points once a dropped point turns out live (`missed`)."""
+        V_before, over = carry
+        x0 = jnp.where(k == 1, V_now, V_before)
+        on = (k > 0).astype(V_before.dtype)
+        if not sparse_step:
+            every = full()
+            return (
+                minimize_convex(objective(c, every, with_friction(c, every, V_before, on)), x0, tol),
+                over,
+            ), V_before
+        small = objective(c, sets.sparse, with_friction(c, sets.sparse, V_before, on))
+
+        def dense():
+            every = full()
+            return objective(c, every, with_friction(c, every, V_before, on))
+
+        def forward(x):
+            """Over the active sets, then over all points once a dropped point turns out live (once
+            over, the rest of the step is dense: its friction needs all the points)."""
+            trial = newton(small, x, tol)
+            now_over = over | missed(c, sets, u_n0, trial)
+            return run_if(now_over, lambda x: newton(dense(), x, tol), trial), now_over
+
+        def solved_over(V, now_over):  # the objective that was minimised
+            return jax.lax.cond(now_over, lambda V: dense()(V), small, V)
+
+        return solve_implicit(forward, solved_over, x0), V_before
+
+    (V_next, over), befores = jax.lax.scan(one_pass, (c.V_free, jnp.zeros((), bool)), jnp.arange(PASSES))
+    return V_next, over, reactions(c, V_next, befores[-1], over, sets.sparse if sparse_step else None)
+
+
+def reactions(c: ContactProblem, V_next: Array, V_before: Array, over: Array, sparse: _Sets | None) -> Array:
+    """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (the pair's force on the DANO is
+    -dT/dV_a / h), over the points the last pass was solved over: the active sets (`sparse`), or
+    all points where there are none or they overflowed (`over`)."""
+    last_on = jnp.asarray(float(PASSES > 1), c.V_free.dtype)
+    xfrc = c.xfrc
+    for s, body in enumerate(c.prim_body):  # a free primitive: the wrench that takes it to V'
+        e = slice(6 * (c.n + s), 6 * (c.n + s) + 6)
+        xfrc = scatter(xfrc, body, c.M[e, e] @ (V_next[e] - c.V_free[e]) / c.h)
+    for j, ((i, kind, _), mate) in enumerate(zip(c.pair_list, c.mates, strict=True)):
+        if mate.body < 0 or c.other[j] >= 0:
+            continue
+
+        def grad_of(sets, j=j):
+            return pair_terms(c, sets, j, with_friction(c, sets, V_before, last_on), V_next)[1]
+
+        def every():
+            return grad_of(point_sets(c, c.supports, c.patches))
+
+        g = every() if sparse is None else jax.lax.cond(over, every, lambda sparse=sparse: grad_of(sparse))
+        if kind == "link":
+            assert c.kin is not None  # `link_motion` ran: the world has links
+            centre = c.kin.xipos[mate.body]
+        else:
+            centre = mate.frame.x
+        xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / c.h, c.frames[i].x, centre))
+    return xfrc
+
+
+def untouched(c: ContactProblem) -> tuple[Array, Array, Array]:
+    """No point of any pair is live where the free motion goes: V~ is the minimiser (every contact
+    term is flat there), no check and no reaction."""
+    return c.V_free, jnp.zeros((), bool), c.xfrc
