@@ -10,10 +10,13 @@ with, and names the frame, the body, its contacts' penetration and the time step
 
 import csv
 import dataclasses
+import functools
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -54,7 +57,6 @@ class Simulation:
     data: mjx.Data
     world: World
     params: Params
-    _compiled: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def from_scene(cls, scene: Scene) -> "Simulation":
@@ -70,16 +72,8 @@ class Simulation:
         are optional per-frame inputs (see `rollout`).
         """
         n = self.scene.n_steps if n_frames is None else n_frames
-
-        if n not in self._compiled:
-
-            def go(params, d, ctrl, mocap_pos, external):
-                return rollout(self.world, params, self.mjx_model, d, n, ctrl, mocap_pos, external)
-
-            self._compiled[n] = jax.jit(go, compiler_options=compiler_options(self.world))
-        fn = self._compiled[n]
         params = self.params if params is None else params
-        traj = fn(params, self.data, ctrl, mocap_pos, external)
+        traj = jitted(rollout)(self.world, params, self.mjx_model, self.data, n, ctrl, mocap_pos, external)
         if ctrl is None and mocap_pos is None and external is None:
             audit_energy(traj, self, params)  # first: the energy grows before the state blows up
         check_trajectory(traj, self.scene, self.world)
@@ -91,14 +85,8 @@ class Simulation:
         `batch_data`), vmapped and sharded over all local devices (`shard_batch`); checks every
         environment as `run` does (no energy audit). Returns the batched `Trajectory`."""
         n = self.scene.n_steps if n_frames is None else n_frames
-        key = ("batch", n)
-        if key not in self._compiled:
-
-            def go(params, d):
-                return jax.vmap(lambda d: rollout(self.world, params, self.mjx_model, d, n))(d)
-
-            self._compiled[key] = jax.jit(go, compiler_options=compiler_options(self.world))
-        traj = self._compiled[key](self.params if params is None else params, shard_batch(data))
+        params = self.params if params is None else params
+        traj = jitted(rollout_batch)(self.world, params, self.mjx_model, shard_batch(data), n)
         for i in range(traj.qpos.shape[0]):
             check_trajectory(jax.tree_util.tree_map(lambda x, i=i: x[i], traj), self.scene, self.world)
         _warn_fallbacks(traj, self.world)
@@ -204,6 +192,21 @@ def _warn_fallbacks(traj: Trajectory, world) -> None:
 
 class ContactBudgetWarning(UserWarning):
     """Steps whose contact active sets overflowed were solved over all points (`dano.contact.active`)."""
+
+
+@functools.cache
+def jitted(fn: Callable) -> Callable:
+    """`fn` under `eqx.filter_jit` with this backend's `compiler_options`, made once per function on
+    first use: its arrays traced, everything else (the world's static structure, a frame count)
+    static, so one compiled program serves every scene of the same structure and its cache is JAX's
+    own, not an attribute of an object."""
+    options = compiler_options(None)
+    return eqx.filter_jit(fn, compiler_options=options)  # pyright: ignore[reportCallIssue]  (jax.jit's keyword)
+
+
+def rollout_batch(world: World, params: Params, m: mjx.Model, d: mjx.Data, n: int) -> Trajectory:
+    """`rollout` of every state of a batch `d` (a leading axis on every leaf), vmapped."""
+    return jax.vmap(lambda d: rollout(world, params, m, d, n))(d)
 
 
 def compiler_options(world) -> dict | None:
