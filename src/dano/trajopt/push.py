@@ -17,9 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dano import validate as V
 from dano.scenarios import push_scene
 from dano.sim.run import Simulation, at_interval, compiler_options
-from dano.sim.scene import Scene
+from dano.sim.scene import Integrator, Scene
 from dano.sim.step import Trajectory, scaled_model, step
 from dano.trajopt.ilqr import Options, Solution, compiled, solve
 from dano.trajopt.pieces import OptimalControlProblem, TrajoptError
@@ -74,10 +75,10 @@ def push_problem(
     distance = float(np.linalg.norm(goal))
     if distance < 1e-3:
         raise TrajoptError("the goal is where the object already is: nothing to push")
-    integrator = task.integrator or robot.integrator
+    integrator = V.option(task.integrator or robot.integrator, "integrator", TrajoptError, Integrator)
     substep = task.substep or (robot.substep if integrator == robot.integrator else 5e-4)
-    if integrator not in ("implicit", "explicit") or not substep > 0:
-        raise TrajoptError(f"integrator must be 'implicit' or 'explicit', substep > 0; got {integrator!r}, {substep}")
+    if not substep > 0:
+        raise TrajoptError(f"substep must be > 0, got {substep}")
     scene = _scene(dano, robot, goal / distance, friction, task.dt, substep, integrator)
     sim = _settled(Simulation.from_scene(scene), task.horizon, robot.full_ctrl(robot.hold()))
     return _assemble(robot, task, sim, goal)
@@ -117,7 +118,7 @@ def _scene(
     friction: float,
     dt: float,
     substep: float,
-    integrator: str,
+    integrator: Integrator,
 ) -> Scene:
     scene = robot.place(push_scene(dano, friction, direction=tuple(direction)), dano, direction)
     scene = dataclasses.replace(scene, timestep=substep, substeps=1, duration=dt, integrator=integrator)

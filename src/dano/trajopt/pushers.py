@@ -16,7 +16,7 @@ import numpy as np
 
 from dano.assets import panda
 from dano.sim.run import Simulation
-from dano.sim.scene import Scene
+from dano.sim.scene import Integrator, Scene
 from dano.sim.step import mjx_kinematics
 from dano.trajopt.pieces import TrajoptError
 from dano.trajopt.task import PushTask
@@ -57,7 +57,7 @@ class AbstractPusher(abc.ABC):
     """
 
     name: ClassVar[str]
-    integrator: ClassVar[str]
+    integrator: ClassVar[Integrator]
     substep: ClassVar[float]
     goal_as_constraint: ClassVar[bool]
 
@@ -85,7 +85,7 @@ class SpherePusher(AbstractPusher):
     implicit step."""
 
     name = "sphere"
-    integrator, substep = "implicit", 8e-3
+    integrator, substep = Integrator.implicit, 8e-3
     goal_as_constraint = True
 
     def place(self, scene: Scene, dano: DANO, direction: np.ndarray) -> Scene:
@@ -130,7 +130,7 @@ class PandaPusher(AbstractPusher):
     too rough near the goal for the augmented Lagrangian to drive the miss below 1e-4 m."""
 
     name = "panda"
-    integrator, substep = "explicit", 5e-4
+    integrator, substep = Integrator.explicit, 5e-4
     goal_as_constraint = False
 
     def place(self, scene: Scene, dano: DANO, direction: np.ndarray) -> Scene:

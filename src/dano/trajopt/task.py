@@ -2,6 +2,8 @@
 
 import dataclasses
 
+from dano.sim.scene import Integrator
+
 
 @dataclasses.dataclass(frozen=True)
 class PushTask:
@@ -27,7 +29,7 @@ class PushTask:
     goal: tuple[float, float] = (0.1, 0.0)
     horizon: int = 10
     dt: float = 0.08
-    integrator: str | None = None
+    integrator: Integrator | str | None = None
     substep: float | None = None
     ee_goal: tuple[float, float, float] | None = None
     goal_as_constraint: bool | None = None
