@@ -86,7 +86,8 @@ class Simulation:
         environment as `run` does (no energy audit). Returns the batched `Trajectory`."""
         n = self.scene.n_steps if n_frames is None else n_frames
         params = self.params if params is None else params
-        traj = jitted(rollout_batch)(self.world, params, self.mjx_model, shard_batch(data), n)
+        world, params, m = replicated((self.world, params, self.mjx_model))  # beside the batch's shares
+        traj = jitted(rollout_batch)(world, params, m, shard_batch(data), n)
         for i in range(traj.qpos.shape[0]):
             check_trajectory(jax.tree_util.tree_map(lambda x, i=i: x[i], traj), self.scene, self.world)
         _warn_fallbacks(traj, self.world)
@@ -166,6 +167,17 @@ def shard_batch(tree):
     mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
     batched = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
     return jax.tree_util.tree_map(lambda x: jax.device_put(x, batched) if jnp.ndim(x) > 0 else x, tree)
+
+
+def replicated(tree):
+    """Places every array leaf of `tree` whole on all local devices (what a sharded batch's
+    computation reads beside its share: the world, the parameters, the model); on one device it is
+    returned as is."""
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return tree
+    whole = jax.sharding.NamedSharding(jax.sharding.Mesh(np.asarray(devices), ("batch",)), jax.sharding.PartitionSpec())
+    return jax.tree_util.tree_map(lambda x: jax.device_put(x, whole) if eqx.is_array(x) else x, tree)
 
 
 FALLBACK_SHARE = 0.02

@@ -9,7 +9,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano import validate as V
 from dano.sysid.params import SysidError
 from dano.sysid.problem import Problem, over_windows, residuals, window_residuals
 
@@ -47,7 +46,8 @@ def robust(r: Float[Array, "... 6"], loss: Loss | str, c: float = ROBUST_SCALE) 
     force); "cauchy" c² log(1 + u/c²) (an outlier's pull fades). Smooth, with the gradient of the
     identity at 0.
     """
-    loss = V.option(loss, "the loss", SysidError, Loss)
+    if loss not in tuple(Loss):
+        raise SysidError(f"the loss must be 'l2', 'huber' or 'cauchy', got {loss!r}")
     if loss == Loss.l2:
         return r
     e = r.reshape(*r.shape[:-1], 2, 3)
