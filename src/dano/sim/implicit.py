@@ -35,6 +35,7 @@ velocities are held at zero. The reactions on robot links (driven by servos, so 
 pairs' forces with opposite sign, applied through `xfrc_applied` before `mjx.step`.
 """
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
@@ -46,7 +47,7 @@ from dano._mjx import mjx
 from dano.contact import active
 from dano.contact.friction import Patch
 from dano.contact.overlap import signed_distance
-from dano.contact.pairs import Frame
+from dano.contact.pairs import Body, Frame
 from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
 from dano.sim.contact_solve import ContactProblem, solved, untouched
@@ -169,8 +170,11 @@ def implicit_step(
 
 
 class _Free(NamedTuple):
-    """The unknowns' free motion: frames, masses, mass matrix M, V~, the velocities held at 0."""
+    """The unknowns' free motion: the DANOs' bodies, the free primitives' MuJoCo bodies, frames,
+    masses, mass matrix M, V~, the velocities held at 0."""
 
+    bodies: Sequence[Body]
+    prim_body: list[int]
     frames: list[Frame]
     masses: list
     inertia_body: list[Array]
@@ -206,7 +210,7 @@ def _free_motion(world: World, params: Params, m: mjx.Model, d: mjx.Data, free, 
             continue
         v = f.v + h * (m.opt.gravity + ext[:3] / masses[i])
         V_free.append(jnp.concatenate([v, f.w + h * jnp.linalg.solve(inertia_w[i], ext[3:])]))
-    return _Free(frames, masses, inertia_body, inertia_w, M, jnp.concatenate(V_free), locked)
+    return _Free(bodies, prim_body, frames, masses, inertia_body, inertia_w, M, jnp.concatenate(V_free), locked)
 
 
 def _contact_problem(
@@ -216,7 +220,6 @@ def _contact_problem(
     at the pose the free motion reaches (so a contact that the step would reach acts in that step),
     their lever arms and their partner's velocities."""
     h, n = world.dt, len(world.danos)
-    bodies = dano_bodies(world, params)
     pair_list = pairs(world)
     kin = link_motion(m, d) if world.links else None
     mates = partners(world, d, mocap_vel, kin)
@@ -234,7 +237,7 @@ def _contact_problem(
         b = start[other[j]] if other[j] >= 0 else mate.frame
         if other[j] >= 0 and mate.dano < 0:  # a free primitive, at the pose its free motion reaches
             mate = Partner(b, primitive_shape(world, k, b), mate.body, -1, mate.inv_mass, mate.radius)
-        sup = _support(world, p, mate, bodies, i, a, b, h)
+        sup = _support(world, p, mate, f.bodies, i, a, b, h)
         zero = jnp.zeros_like(sup.at)
         if other[j] >= 0:
             patch = Patch(
@@ -248,9 +251,8 @@ def _contact_problem(
             sup = Support(sup.at, sup.normal, sup.weight, sup.s0 + ahead, sup.gain, sup.smooth)
         supports.append(sup)
         patches.append(patch)
-    prim_body = [world.prims[k].body for k in free]
     return ContactProblem(world, params, h, n, pair_list, mates, other, supports, patches, V, f.M, f.locked, f.frames,
-                          f.masses, prim_body, kin, jnp.zeros_like(d.xfrc_applied))  # fmt: skip
+                          f.masses, f.prim_body, kin, jnp.zeros_like(d.xfrc_applied))  # fmt: skip
 
 
 def _integrate(world: World, m: mjx.Model, d: mjx.Data, f: _Free, free, V_next, xfrc) -> mjx.Data:
