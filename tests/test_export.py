@@ -89,30 +89,3 @@ def test_dano_export_writes_the_scene_file_and_refuses_a_wrong_output(soap, tmp_
     assert summary["bodies"] == ["soap"] and summary["bytes"] == out.stat().st_size > 0
     assert main(["export", str(scene), "-o", str(tmp_path / "scene.mjcf")]) == 2
     assert "scene.mjcf" in capsys.readouterr().err and not (tmp_path / "scene.mjcf").exists()
-
-
-def test_a_trajectory_is_exported_as_one_keyframe_per_frame(soap, tmp_path):
-    import mujoco
-
-    from dano.sim.run import Simulation, write_csv
-
-    scene = Scene(duration=0.1, bodies=(DanoBody("soap", soap, pos=(0.0, 0.0, 0.03), vel=(0.3, 0.0, 0.0)),))
-    sim = Simulation.from_scene(scene)
-    write_csv(tmp_path / "traj.csv", sim.run(), sim)
-    rows = np.genfromtxt(tmp_path / "traj.csv", delimiter=",", skip_header=1, usecols=(0, 2, 3, 4, 5, 6, 7, 8))
-    path = export_scene(scene, tmp_path / "scene.xml", method="vhacd", resolution=20, progress=False,
-                        trajectory=tmp_path / "traj.csv")  # fmt: skip
-    model = mujoco.MjModel.from_xml_path(str(path))
-    data = mujoco.MjData(model)
-    assert model.nkey == len(rows) == 51
-    for k in (0, 25, 50):
-        mujoco.mj_resetDataKeyframe(model, data, k)  # pyright: ignore[reportAttributeAccessIssue]  (not in the stubs)
-        assert data.time == pytest.approx(rows[k, 0])
-        assert np.allclose(data.qpos[:7], rows[k, 1:], atol=1e-9)  # the CSV's 9 digits, written with 12
-    assert rows[50, 1] > rows[0, 1] + 0.01  # it slid: the keys are the motion, not one pose repeated
-    renamed = (tmp_path / "traj.csv").read_text().replace(",soap,", ",bar,")
-    (tmp_path / "other.csv").write_text(renamed)
-    with pytest.raises(ExportError, match=r"bodies \['bar'\] are not the scene's free bodies \['soap'\]"):
-        export_scene(scene, tmp_path / "other.xml", method="vhacd", resolution=20, progress=False,
-                     trajectory=tmp_path / "other.csv")  # fmt: skip
-    assert not (tmp_path / "other.xml").exists()

@@ -54,21 +54,16 @@ def export_scene(
     threshold: float = 0.05,
     resolution: int = 64,
     progress: bool = True,
-    trajectory: str | Path | None = None,
 ) -> Path:
     """Writes `scene` to `path` (.xml) for plain MuJoCo (module docstring) and returns the path.
 
     Args:
         method, threshold: the convex decomposition (`dano.baselines.mesh.convex_decomposition`).
         resolution: marching-cubes nodes along the longest side of each DANO's grid box.
-        trajectory: a `dano simulate` CSV of this scene, written as one keyframe per frame (`<key
-            time qpos>`: replay with `mujoco.mj_resetDataKeyframe(model, data, k)`).
 
     Raises:
         ExportError: a path that is not .xml, a DANO without a grid, or one whose principal moments
-            MuJoCo refuses (the triangle inequality); a trajectory that does not fit the scene (a
-            body it lacks or has too many, frames of different times, joints other than free
-            ones, whose positions a pose CSV does not hold); the file is then not written.
+            MuJoCo refuses (the triangle inequality); the file is then not written.
     """
     path = Path(path)
     if path.suffix.lower() != ".xml":
@@ -80,8 +75,6 @@ def export_scene(
     root = ET.fromstring(spec.to_xml())
     for body in scene.bodies:
         _write_inertial(root, body)
-    if trajectory is not None:
-        _add_keyframes(root, spec.compile(), trajectory)
     xml = ET.tostring(root, encoding="unicode")
     _check(xml, scene)
     with atomic_write(path) as tmp:
@@ -103,32 +96,6 @@ def _add_geoms(spec: mujoco.MjSpec, body: DanoBody, friction, method, threshold,
             geom.group, geom.rgba = 1, [0.85, 0.55, 0.35, 1.0]
         else:
             geom.group = 3
-
-
-def _add_keyframes(root: ET.Element, model: mujoco.MjModel, trajectory: str | Path) -> None:
-    """One `<key>` per frame of the trajectory CSV: its time and qpos, each free body's from its pose."""
-    from dano.sysid.data import read_tracks
-
-    tracks = read_tracks(trajectory)
-    free = {}
-    for j in range(model.njnt):
-        name = model.body(model.jnt_bodyid[j]).name
-        if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_FREE:
-            raise ExportError(f"{trajectory}: keyframes need the position of joint {model.joint(j).name!r} of "
-                              f"{name!r}, which a pose CSV does not hold (free bodies only)")  # fmt: skip
-        free[name] = int(model.jnt_qposadr[j])
-    if set(tracks) != set(free):
-        raise ExportError(f"{trajectory}: the trajectory's bodies {sorted(tracks)} are not the scene's free bodies "
-                          f"{sorted(free)}")  # fmt: skip
-    t = next(iter(tracks.values())).t
-    if any(tr.t.shape != t.shape or not np.allclose(tr.t, t) for tr in tracks.values()):
-        raise ExportError(f"{trajectory}: the bodies' rows are not at the same times")
-    keyframe = ET.SubElement(root, "keyframe")
-    for k in range(len(t)):
-        qpos = np.array(model.qpos0, dtype=float)
-        for name, a in free.items():
-            qpos[a : a + 3], qpos[a + 3 : a + 7] = tracks[name].pos[k], tracks[name].quat[k]
-        ET.SubElement(keyframe, "key", {"time": repr(float(t[k])), "qpos": " ".join(f"{v:.12g}" for v in qpos)})
 
 
 def _write_inertial(root: ET.Element, body: DanoBody) -> None:

@@ -103,7 +103,6 @@ def _add_export(sub) -> None:
                    help="CoACD's concavity threshold; V-HACD's volume error, 100x it in %% (default 0.05)")  # fmt: skip
     e.add_argument("--resolution", type=_int(8), default=64,
                    help="marching-cubes nodes along the longest side of each DANO's grid box (default 64)")  # fmt: skip
-    e.add_argument("--trajectory", help="a `dano simulate` CSV of the scene, written as one keyframe per frame")
     e.add_argument("--json", action="store_true", help="one JSON object (output, bodies, bytes)")
     e.set_defaults(run=_export)
 
@@ -114,7 +113,7 @@ def _export(args: argparse.Namespace) -> None:
 
     scene = load_scene(args.scene)
     path = export_scene(scene, args.output, method=args.method, threshold=args.threshold,
-                        resolution=args.resolution, progress=not args.json, trajectory=args.trajectory)  # fmt: skip
+                        resolution=args.resolution, progress=not args.json)  # fmt: skip
     summary = {"output": str(path), "bodies": [b.name for b in scene.bodies], "bytes": path.stat().st_size}
     human = f"wrote {path}: {len(scene.bodies)} DANO(s) as meshes, {summary['bytes']} bytes (plain MuJoCo loads it)"
     print(json.dumps(summary) if args.json else human)
