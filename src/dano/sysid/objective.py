@@ -11,8 +11,17 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano.sim.run import jitted
-from dano.sysid.configs import Loss, SysidError
+from dano.sysid.params import SysidError
 from dano.sysid.problem import Problem, over_windows, residuals, traced, window_residuals
+
+
+class Loss(enum.StrEnum):
+    """The loss on pose residuals (`robust`): `l2` least squares; `huber` and `cauchy` for data with
+    outliers (impacts the model misses, tracking failures)."""
+
+    l2 = "l2"
+    huber = "huber"
+    cauchy = "cauchy"
 
 
 class Jacobian(enum.StrEnum):

@@ -34,8 +34,13 @@ from dano.sim.run import at_interval, jitted
 from dano.sim.scene import DanoBody, Primitive, Scene
 from dano.sim.step import rollout
 from dano.sim.world import Params, World
-from dano.sysid.configs import Initial, SysidError
-from dano.sysid.params import canonical, current_values, with_values
+from dano.sysid.params import (
+    Initial,
+    SysidError,
+    canonical,
+    current_values,
+    with_values,
+)
 from dano.sysid.windows import Observed, Recording, Windows, build_windows
 
 
