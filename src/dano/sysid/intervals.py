@@ -37,7 +37,7 @@ class Refit:
         point = Point(start, *self.objective.evaluate(start))
         hold = np.zeros(start.size, bool)
         hold[k] = True
-        point, _, _ = levenberg_marquardt(point, self.objective, hold, 20, self.tol)
+        point, _, _ = levenberg_marquardt(point, self.objective, hold, 20, self.tol, lambda point: None)
         self.last[(k, v > self.best.y[k])] = point
         return point.loss
 

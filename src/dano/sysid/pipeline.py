@@ -220,8 +220,9 @@ def _lying_still(scene: Scene, recordings: list[Recording], config: SysidConfig,
     candidates = [(k, yaw) for k in range(len(poses)) for yaw in YAWS]
     problems, losses = [], []
     for k, yaw in candidates:
+        problem = build(scene, lying(poses[k], yaw))
         # one structure for every candidate: the first one's compiled functions serve them all
-        problems.append(build(scene, lying(poses[k], yaw)))
+        problems.append(problem if not problems else dataclasses.replace(problem, cache=problems[0].cache))
         losses.append(_initial_loss(problems[-1], init, bounds))
     if not np.isfinite(min(losses)):
         raise SysidError("no resting orientation gives a finite loss at the initial guess")
