@@ -164,8 +164,7 @@ def shard_batch(tree):
         return tree
     if size % len(devices):
         raise SimulationError(f"a batch of {size} does not divide over {len(devices)} devices: use a multiple")
-    mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
-    batched = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+    batched = _over_devices(jax.sharding.PartitionSpec("batch"))
     return jax.tree_util.tree_map(lambda x: jax.device_put(x, batched) if jnp.ndim(x) > 0 else x, tree)
 
 
@@ -173,11 +172,15 @@ def replicated(tree):
     """Places every array leaf of `tree` whole on all local devices (what a sharded batch's
     computation reads beside its share: the world, the parameters, the model); on one device it is
     returned as is."""
-    devices = jax.local_devices()
-    if len(devices) == 1:
+    if len(jax.local_devices()) == 1:
         return tree
-    whole = jax.sharding.NamedSharding(jax.sharding.Mesh(np.asarray(devices), ("batch",)), jax.sharding.PartitionSpec())
+    whole = _over_devices(jax.sharding.PartitionSpec())
     return jax.tree_util.tree_map(lambda x: jax.device_put(x, whole) if eqx.is_array(x) else x, tree)
+
+
+def _over_devices(spec: jax.sharding.PartitionSpec) -> jax.sharding.NamedSharding:
+    """`spec` on a one-axis ("batch") mesh of all local devices."""
+    return jax.sharding.NamedSharding(jax.sharding.Mesh(np.asarray(jax.local_devices()), ("batch",)), spec)
 
 
 FALLBACK_SHARE = 0.02

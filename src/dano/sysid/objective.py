@@ -47,7 +47,8 @@ def robust(r: Float[Array, "... 6"], loss: Loss | str, c: float = ROBUST_SCALE) 
     identity at 0.
     """
     if loss not in tuple(Loss):
-        raise SysidError(f"the loss must be 'l2', 'huber' or 'cauchy', got {loss!r}")
+        *first, last = (repr(v.value) for v in Loss)
+        raise SysidError(f"the loss must be {', '.join(first)} or {last}, got {loss!r}")
     if loss == Loss.l2:
         return r
     e = r.reshape(*r.shape[:-1], 2, 3)
