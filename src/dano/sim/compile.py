@@ -148,9 +148,7 @@ def compile_scene(scene: Scene, check_start: bool = False) -> Compiled:
             MuJoCo cannot compile, unknown contact bodies or pairs, an unresolvable start.
     """
     _check_dano_pairs(scene)
-    spec = mujoco.MjSpec() if scene.robot is None else robot_spec(scene.robot)
-    robot_bodies = prepare_robot(spec, scene.robot) if scene.robot is not None else []
-    _add_scene(spec, scene)
+    spec, robot_bodies = scene_spec(scene)
     try:
         model = spec.compile()
     except ValueError as e:  # e.g. a robot link named like a DANO
@@ -168,6 +166,16 @@ def compile_scene(scene: Scene, check_start: bool = False) -> Compiled:
     )
     qpos, qvel = _initial_state(scene, model, world, robot_bodies)
     return Compiled(model, world, params, qpos, qvel)
+
+
+def scene_spec(scene: Scene) -> tuple[mujoco.MjSpec, list[str]]:
+    """The scene as an uncompiled MuJoCo spec, and the robot's bodies: its options, ground,
+    primitives and robot, each DANO a free body with its mass in its principal frame and no geom
+    (its contact is dano's; its moments are written after compiling, `_set_moments`)."""
+    spec = mujoco.MjSpec() if scene.robot is None else robot_spec(scene.robot)
+    robot_bodies = prepare_robot(spec, scene.robot) if scene.robot is not None else []
+    _add_scene(spec, scene)
+    return spec, robot_bodies
 
 
 def _check_dano_pairs(scene: Scene) -> None:
