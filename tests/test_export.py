@@ -116,3 +116,31 @@ def test_a_trajectory_is_exported_as_one_keyframe_per_frame(soap, tmp_path):
         export_scene(scene, tmp_path / "other.xml", method="vhacd", resolution=20, progress=False,
                      trajectory=tmp_path / "other.csv")  # fmt: skip
     assert not (tmp_path / "other.xml").exists()
+
+
+def test_a_robots_mesh_files_travel_with_the_exported_file(soap, tmp_path):
+    import shutil
+    from pathlib import Path
+
+    import trimesh
+
+    from dano.sim.scene import Robot
+
+    # A one-link MJCF arm whose link is a mesh file in a folder of its own.
+    (tmp_path / "robot" / "meshes").mkdir(parents=True)
+    trimesh.creation.box((0.2, 0.04, 0.04)).export(tmp_path / "robot" / "meshes" / "link.stl")
+    (tmp_path / "robot" / "arm.xml").write_text(
+        """<mujoco><compiler meshdir="meshes"/><asset><mesh name="link" file="link.stl"/></asset>
+        <worldbody><body name="link" pos="0 0 0.2"><joint name="hinge" axis="0 0 1"/>
+        <geom type="mesh" mesh="link" mass="0.5"/></body></worldbody></mujoco>"""
+    )
+    scene = Scene(
+        bodies=(DanoBody("soap", soap, pos=(0.3, 0.0, 0.05)),), robot=Robot(str(tmp_path / "robot" / "arm.xml"))
+    )
+    export_scene(scene, tmp_path / "out" / "scene.xml", method="vhacd", resolution=20, progress=False)
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["scene.xml", "scene_assets"]
+    shutil.rmtree(tmp_path / "robot")  # the original meshes are gone ...
+    moved = Path(shutil.move(tmp_path / "out", tmp_path / "elsewhere"))  # ... and the export moved
+    run = subprocess.run([sys.executable, "-c", LOAD, str(moved / "scene.xml"), "10"], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert json.loads(run.stdout)["mass"] == pytest.approx(float(soap.mass), rel=1e-9)

@@ -7,10 +7,13 @@ density grid at the middle of its density window, the surface its points were dr
 collision geoms from the mesh path (that surface's convex decomposition, CoACD or V-HACD). **The
 collision geometry is the mesh path's approximation, not the DANO's contact model**: MuJoCo's
 contact on convex hulls fills concavities and is a different model (`dano compare` measures how far
-the two part). Meshes are written inline in the file (no side files). Everything else in the scene
+the two part). The DANOs' meshes are written inline in the file; files the scene itself refers to
+(a robot's meshes) are copied into a folder beside it (`scene.xml` → `scene_assets/`) and referred to
+by relative path, so the file and its folder can be moved together. Everything else in the scene
 (ground, primitives, robot, options) is what dano compiles for itself.
 """
 
+import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -21,7 +24,7 @@ import trimesh
 from dano.baselines.mesh import convex_decomposition, level_set_mesh
 from dano.errors import DanoError
 from dano.fields.grid import GridField
-from dano.io import atomic_write
+from dano.io import atomic_folder, atomic_write
 from dano.sim.compile import scene_spec
 from dano.sim.scene import DanoBody, Scene
 
@@ -74,6 +77,7 @@ def export_scene(
     if path.suffix.lower() != ".xml":
         raise ExportError(f"the MJCF file must end in .xml, got {path.name!r}")
     spec, _ = scene_spec(scene)
+    _absolute_files(spec)
     friction = [float(scene.contact.sliding_friction), 0.005, 0.0001]
     for body in scene.bodies:
         _add_geoms(spec, body, friction, method, threshold, resolution, progress)
@@ -82,11 +86,42 @@ def export_scene(
         _write_inertial(root, body)
     if trajectory is not None:
         _add_keyframes(root, spec.compile(), trajectory)
-    xml = ET.tostring(root, encoding="unicode")
-    _check(xml, scene)
+    _check(ET.tostring(root, encoding="unicode"), scene)
+    copies = _bundle(root, path)
+    if copies:
+        with atomic_folder(path.parent / f"{path.stem}_assets") as folder:
+            for source, name in copies.items():
+                shutil.copyfile(source, folder / name)
     with atomic_write(path) as tmp:
-        tmp.write_text(xml)
+        tmp.write_text(ET.tostring(root, encoding="unicode"))
     return path
+
+
+def _absolute_files(spec: mujoco.MjSpec) -> None:
+    """Every asset file of the spec (a robot's meshes, textures, height fields) by absolute path,
+    resolved as MuJoCo would from the file's folder and its compiler's mesh and texture folders."""
+    base = Path(spec.modelfiledir or ".")
+    for assets, folder in ((spec.meshes, spec.meshdir), (spec.skins, spec.meshdir), (spec.hfields, spec.meshdir),
+                           (spec.textures, spec.texturedir)):  # fmt: skip
+        for asset in assets:
+            if asset.file and not Path(asset.file).is_absolute():
+                asset.file = str((base / (folder or "") / asset.file).resolve())
+    spec.meshdir = spec.texturedir = ""
+
+
+def _bundle(root: ET.Element, path: Path) -> dict[Path, str]:
+    """Points every `file=` of the MJCF (a robot's meshes, textures) at a copy in `<stem>_assets/`
+    beside `path`, by relative path; returns the copies to make (source → name in that folder)."""
+    copies: dict[Path, str] = {}
+    for element in root.iter():
+        if "file" not in element.attrib:
+            continue
+        source = Path(element.attrib["file"]).resolve()
+        if source not in copies:
+            taken = set(copies.values())
+            copies[source] = source.name if source.name not in taken else f"{len(copies)}_{source.name}"
+        element.set("file", f"{path.stem}_assets/{copies[source]}")
+    return copies
 
 
 def _add_geoms(spec: mujoco.MjSpec, body: DanoBody, friction, method, threshold, resolution, progress) -> None:
