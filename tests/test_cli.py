@@ -117,8 +117,8 @@ def test_build_json_is_what_info_reads_back(tmp_path, capsys):
     ("old", "new", "dest", "value"),
     [
         (["sysid", "--scene", "s.toml"], ["sysid", "s.toml"], "scene", "s.toml"),
-        (["sysid", "s.toml", "--max-steps", "7"], ["sysid", "s.toml", "--max-iterations", "7"], "max_steps", 7),
-        (["sysid", "s.toml", "--window", "5"], ["sysid", "s.toml", "--window-frames", "5"], "window", 5),
+        (["sysid", "s.toml", "--max-steps", "7"], ["sysid", "s.toml", "--max-iterations", "7"], "config_max_steps", 7),
+        (["sysid", "s.toml", "--window", "5"], ["sysid", "s.toml", "--window-frames", "5"], "config_window", 5),
         (["render-views", "m.ply", "-o", "d", "--resolution", "32"],
          ["render-views", "m.ply", "-o", "d", "--image-size", "32"], "resolution", 32),
         (["track", "v", "--field", "f", "--camera", "c", "--masks", "m", "-o", "t.csv", "--iterations", "9"],
@@ -201,14 +201,47 @@ def test_a_commands_solver_options_are_generated_from_its_config(monkeypatch, ca
         from_args(cls, bad)
 
 
+def test_sysid_options_are_generated_from_its_config():
+    """`dano sysid`: every field of `SysidConfig` but the three with their own syntax (`--fit`,
+    `--init`, `--bounds`) is an option documented by the field; given values reach the config, the
+    others keep the library's defaults but the command's own, `interval` (shown in its help); a
+    value the config refuses names the field."""
+    import dataclasses
+
+    from dano import cli
+    from dano.cli.configs import field_help, from_args
+    from dano.sysid.configs import Interval, SysidConfig, SysidError
+
+    p = cli.parser()
+    sub = next(a for a in p._actions if isinstance(a, cli.argparse._SubParsersAction)).choices["sysid"]
+    dests = {a.dest for a in sub._actions}
+    helps = field_help(SysidConfig)
+    own = {"fit", "init", "bounds"}
+    for field in dataclasses.fields(SysidConfig):
+        assert helps[field.name], field.name
+        assert ("config_" + field.name in dests) is (field.name not in own), field.name
+    given = ["--sigma", "0.002", "--loss", "huber", "--gravity", "0,0,-1", "--frames", "3:9", "--max-steps", "7"]
+    args = sub.parse_args(["s.toml", "--fit", "friction", *given])
+    config = from_args(SysidConfig, args, fit=("friction",))
+    assert config.sigma == 0.002 and config.loss == "huber" and config.max_steps == 7
+    assert tuple(config.gravity or ()) == (0.0, 0.0, -1.0) and config.frames == (3, 9)
+    assert config.interval is Interval.profile and "(default profile)" in " ".join(sub.format_help().split())
+    default = SysidConfig(fit=("friction",))
+    for field in dataclasses.fields(SysidConfig):
+        if field.name not in {"sigma", "loss", "max_steps", "gravity", "frames", "interval"}:
+            assert getattr(config, field.name) == getattr(default, field.name), field.name
+    with pytest.raises(SysidError, match="^max_steps must be"):
+        SysidConfig(fit=("friction",), max_steps=0)
+    with pytest.raises(SysidError, match="^level must be between 0 and 1"):
+        SysidConfig(fit=("friction",), level=1.5)
+
+
 def test_string_options_are_enumerations_that_take_their_values():
     """A mode given as its value is stored as the enumeration's member; a wrong one is refused with
     the choices it takes."""
     from dano.contact.pairs import ForceMode
     from dano.sim.scene import Integrator, Mode, Primitive, Scene, SceneError
-    from dano.sysid.intervals import Interval
-    from dano.sysid.params import SysidError
-    from dano.sysid.pipeline import SysidConfig
+    from dano.sysid.configs import Interval, SysidConfig, SysidError
 
     scene = Scene(force_mode="centroid", integrator="explicit")
     assert scene.force_mode is ForceMode.centroid and scene.integrator is Integrator.explicit and scene.substeps == 4

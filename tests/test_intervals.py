@@ -117,8 +117,8 @@ def test_robust_residuals_square_to_the_robust_loss_and_differentiate(loss):
 def test_a_bad_loss_name_is_refused():
     import jax.numpy as jnp
 
+    from dano.sysid.configs import SysidError
     from dano.sysid.objective import robust
-    from dano.sysid.params import SysidError
 
     with pytest.raises(SysidError, match="'l2', 'huber' or 'cauchy'"):
         robust(jnp.zeros((1, 6)), "l1")

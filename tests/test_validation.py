@@ -299,7 +299,7 @@ def test_a_blow_up_names_the_body_and_the_step(ball):
 
 
 def test_identification_guesses_and_bounds_accept_aliases_and_refuse_what_is_not_fitted():
-    from dano.sysid.params import SysidError
+    from dano.sysid.configs import SysidError
     from dano.sysid.solve import by_canonical_name, resolve_bounds
 
     names = ("sliding_friction", "mass_scale")

@@ -25,7 +25,8 @@ A command adds its own keys beside these.
 
 import abc
 import enum
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Generic, TypeVar
 
 from dano.errors import DanoError
 
@@ -89,6 +90,43 @@ class AbstractSolution(abc.ABC):
     @property
     def stats(self) -> dict[str, float | int]:
         return {"iterations": self.iterations, "seconds": self.seconds}
+
+
+State = TypeVar("State")
+
+
+class AbstractIterativeSolver(abc.ABC, Generic[State]):
+    """A solver in Optimistix's shape (`optimistix/_iterate.py`): `init` makes the state from a
+    start, `step` advances it one iteration, `terminate` says whether it has stopped, how (`Result`)
+    and why. `iterate` runs one; the solver itself holds no mutable state."""
+
+    @abc.abstractmethod
+    def init(self, start: Any) -> State: ...
+
+    @abc.abstractmethod
+    def step(self, state: State) -> State: ...
+
+    @abc.abstractmethod
+    def terminate(self, state: State) -> tuple[bool, Result, str]:
+        """(stopped, how, why); `how` is read only where `stopped`."""
+
+
+def iterate(
+    solver: AbstractIterativeSolver[State], state: State, max_steps: int, on_step: Callable[[State], None] | None = None
+) -> tuple[State, Result, str, int]:
+    """Runs `solver` from `state` until it terminates or has taken `max_steps` steps (then
+    `Result.max_steps_reached` unless the last state terminates); `on_step` sees each new state (a
+    history, a progress bar). Returns the last state, how it stopped, why, and the steps taken."""
+    steps = max(int(max_steps), 0)
+    for n in range(steps):
+        stopped, result, message = solver.terminate(state)
+        if stopped:
+            return state, result, message, n
+        state = solver.step(state)
+        if on_step is not None:
+            on_step(state)
+    stopped, result, message = solver.terminate(state)
+    return (state, result, message, steps) if stopped else (state, Result.max_steps_reached, "iteration limit", steps)
 
 
 RESULT_KEYS = (

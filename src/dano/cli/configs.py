@@ -13,7 +13,8 @@ import inspect
 import re
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 from dano.cli.arguments import _float, _int
 
@@ -31,7 +32,7 @@ def field_help(cls: type) -> dict[str, str]:
     for line in section.splitlines():
         if line and not line.startswith(" "):
             break  # the next section
-        entry = re.match(r"^    ([\w, ]+): (.*)$", line)
+        entry = re.match(r"^    (\w[\w, ]*): (.*)$", line)
         if entry:
             names = [n.strip() for n in entry.group(1).split(",")]
             for name in names:
@@ -63,33 +64,44 @@ def add_config(
     *,
     names: Mapping[str, Sequence[str]] | None = None,
     skip: Sequence[str] = (),
+    types: Mapping[str, tuple[Callable[[str], Any], str]] | None = None,
+    defaults: Mapping[str, Any] | None = None,
 ) -> None:
     """Adds `--field-name` (or `names[field]`: the option's spellings, the first shown) for each field
     of the dataclass `cls` the command line can give (numbers, text, switches, enumerations), but
-    those in `skip`. Numbers are checked to be numbers here and against their bounds by `cls`."""
+    those in `skip`. Numbers are checked to be numbers here and against their bounds by `cls`;
+    `types[field]` = (parser, metavar) reads a field the annotation cannot (a vector, a range) or
+    checks one at parse time. `defaults[field]`: the command's own default where it differs from the
+    library's (shown in the help, and used when the option is not given)."""
     helps = field_help(cls)
     hints = typing.get_type_hints(cls)
     for field in dataclasses.fields(cls):
         kind, optional = _kind(hints[field.name])
-        if field.name in skip or kind is None:
+        custom = (types or {}).get(field.name)
+        if field.name in skip or (kind is None and custom is None):
             continue
         flags = list((names or {}).get(field.name, ["--" + field.name.replace("_", "-")]))
         default = field.default if field.default is not dataclasses.MISSING else None
+        given = SUPPRESS
+        if field.name in (defaults or {}):
+            default = given = (defaults or {})[field.name]
         text = helps.get(field.name, "").replace("%", "%%")
         shown = default.value if isinstance(default, enum.Enum) else default
         help = f"{text} (default {shown})" if default is not None or optional else text
         dest = _PREFIX + field.name
-        if kind is bool:
-            parser.add_argument(*flags, action=argparse.BooleanOptionalAction, dest=dest, default=SUPPRESS, help=help)
-        elif issubclass(kind, enum.Enum):
+        if custom is not None:
+            parser.add_argument(*flags, type=custom[0], metavar=custom[1], dest=dest, default=given, help=help)
+        elif kind is bool:
+            parser.add_argument(*flags, action=argparse.BooleanOptionalAction, dest=dest, default=given, help=help)
+        elif kind is not None and issubclass(kind, enum.Enum):
             choices = [m.value for m in kind]
-            parser.add_argument(*flags, choices=choices, dest=dest, default=SUPPRESS, help=help)
+            parser.add_argument(*flags, choices=choices, dest=dest, default=given, help=help)
         else:
             parse = {int: _int(), float: _float(), str: str}[kind]
             if optional:
                 parse = _none_or(parse)
             metavar = {int: "N", float: "X", str: "TEXT"}[kind]
-            parser.add_argument(*flags, type=parse, metavar=metavar, dest=dest, default=SUPPRESS, help=help)
+            parser.add_argument(*flags, type=parse, metavar=metavar, dest=dest, default=given, help=help)
 
 
 def _none_or(parse):

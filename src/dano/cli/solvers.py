@@ -21,7 +21,9 @@ from dano.cli.arguments import (
     _vector,
     _vector_part,
 )
+from dano.cli.configs import add_config, from_args
 from dano.errors import DanoError
+from dano.sysid.configs import Interval, SysidConfig
 
 
 def _add_sysid(sub) -> None:
@@ -53,53 +55,18 @@ def _add_sysid(sub) -> None:
     y.add_argument("--plot", type=_output(*PLOT),
                    help="PNG of observed vs fitted trajectories (with --masks: masks, simulated silhouettes and "
                    "their difference) and the loss")  # fmt: skip
-    y.add_argument("--fps", type=_POSITIVE, help="frame rate of files without a t column")
-    y.add_argument("--scale", type=_POSITIVE, help="metres per unit of the positions in the files")
-    y.add_argument(
-        "--size",
-        type=_POSITIVE,
-        help="the object's real longest dimension along its principal axes, m, as `dano info` "
-        "prints it in the DANO's units (DANO and data share units)",
-    )
-    y.add_argument(
-        "--gravity",
-        type=_checked(_gravity),
-        help="gravity direction gx,gy,gz in the data's frame, or 'fit' (plane of motion)",
-    )
-    y.add_argument("--body", help="the scene body that files without a body column observe")
-    y.add_argument("--window-frames", "--window", dest="window", type=_int(1),
-                   help="frame intervals per shooting window (default: whole trajectories)")  # fmt: skip
-    y.add_argument("--fit-initial", choices=["none", "velocity", "state"],
-                   help="also fit each window's initial velocity, or pose and velocity (default: none; "
-                   "with --masks: state)")  # fmt: skip
-    y.add_argument("--sigma", type=_POSITIVE, default=1e-3, help="tracking noise, m (default 0.001)")
     y.add_argument("--init", help="initial guesses name=value,... (default: the scene's values)")
     y.add_argument("--bounds", help="bounds name=low:high,... (default: Table I ranges, widened)")
-    y.add_argument("--max-iterations", "--max-steps", dest="max_steps", type=_int(1), default=50,
-                   help="Levenberg-Marquardt iterations at most (default 50)")  # fmt: skip
-    y.add_argument("--rotation-weight", type=_float(0.0), default=1.0,
-                   help="weight of the orientation residuals (0: positions only, for a tracker that could "
-                   "not resolve rotation; default 1)")  # fmt: skip
-    y.add_argument("--settle", type=_float(0.0),
-                   help="m: a body this near the ground at a window's start is put on it (default 3 sigma; "
-                   "0: the data as they are)")  # fmt: skip
-    y.add_argument("--interval", choices=["profile", "gauss-newton"], default="profile",
-                   help="profile: refit with each parameter held, where the loss rises by the chi-square "
-                   "quantile (honest on rough or flat losses; ~6 refits per parameter); gauss-newton: "
-                   "estimate +/- z stderr, free (default profile)")  # fmt: skip
-    y.add_argument("--loss", choices=["l2", "huber", "cauchy"], default="l2",
-                   help="least squares (default), or a robust loss for outliers (impacts, tracking failures): "
-                   "frames off by more than 2.8 sigma pull less (huber) or hardly at all (cauchy)")  # fmt: skip
-    y.add_argument(
-        "--orientation",
-        choices=["track", "resting"],
-        default="track",
-        help="track: the files' quaternions (default); resting: the tracker could not resolve "
-        "rotation: the object lies on the stable face and heading that fit best (positions only)",
-    )
-    y.add_argument("--frames", type=_checked(_frames), metavar="FIRST:STOP",
-                   help="rows of each file to fit, 0-based, STOP excluded (e.g. 400:901; default all)")  # fmt: skip
-    y.add_argument("--level", type=_checked(_level), default=0.95, help="confidence level (default 0.95)")
+    add_config(
+        y, SysidConfig, skip=("fit", "init", "bounds"),
+        names={"window": ("--window-frames", "--window"), "initial": ("--fit-initial",),
+               "max_steps": ("--max-iterations", "--max-steps")},
+        types={"fps": (_POSITIVE, "FPS"), "scale": (_POSITIVE, "X"), "size": (_POSITIVE, "M"),
+               "sigma": (_POSITIVE, "M"), "gravity": (_checked(_gravity), "GX,GY,GZ|fit"), "window": (_int(1), "N"),
+               "max_steps": (_int(1), "N"), "rotation_weight": (_float(0.0), "X"), "settle": (_float(0.0), "M"),
+               "frames": (_checked(_frames), "FIRST:STOP"), "level": (_checked(_level), "P")},
+        defaults={"interval": Interval.profile},  # the command reports honest intervals; the library, fast ones
+    )  # fmt: skip
     y.set_defaults(run=_sysid)
 
 
@@ -127,8 +94,8 @@ def _sysid(args: argparse.Namespace) -> None:
     import dataclasses
 
     from dano.plotting import plot_identification
-    from dano.sysid.params import Initial
-    from dano.sysid.pipeline import SysidConfig, identify_files
+    from dano.sysid.configs import Initial
+    from dano.sysid.pipeline import identify_files
 
     if (args.scene is None) == (args.scene_option is None):
         raise DanoError("give the scene once: dano sysid SCENE.toml ... (--scene SCENE.toml is the old spelling)")
@@ -136,13 +103,9 @@ def _sysid(args: argparse.Namespace) -> None:
     fit = tuple(n.strip() for n in args.fit.split(",") if n.strip())
     if not fit:
         raise DanoError("--fit names at least one parameter, e.g. --fit friction,mass_scale")
-    config = SysidConfig(
-        fit=fit, fps=args.fps, scale=args.scale, size=args.size, gravity=args.gravity, body=args.body,
-        window=args.window, initial=Initial(args.fit_initial or "none"), sigma=args.sigma,
-        init=_parse_pairs(args.init, "--init", 1),
-        bounds=_parse_pairs(args.bounds, "--bounds", 2), max_steps=args.max_steps,
-        rotation_weight=args.rotation_weight, settle=args.settle, interval=args.interval, level=args.level,
-        frames=args.frames, loss=args.loss, orientation=args.orientation,
+    config = from_args(
+        SysidConfig, args, fit=fit, init=_parse_pairs(args.init, "--init", 1),
+        bounds=_parse_pairs(args.bounds, "--bounds", 2),
     )  # fmt: skip
     if args.masks is None:
         if args.camera is not None or args.field is not None or args.start_pose is not None or args.refine_frames:
@@ -167,7 +130,8 @@ def _sysid(args: argparse.Namespace) -> None:
             raise DanoError("--init-from first-frames tracks the first masks itself: drop --traj")
         pose = args.start_pose
         start_pose = None if pose is None else (np.asarray(pose[:3]), np.asarray(pose[3:]))
-        config = dataclasses.replace(config, initial=Initial(args.fit_initial or "state"))
+        if not hasattr(args, "config_initial"):  # from masks alone the pose is unknown too
+            config = dataclasses.replace(config, initial=Initial.state)
         problem, result = identify_mask_files(
             args.scene, args.masks, args.camera, config, start=args.traj[0] if args.traj else None,
             start_pose=start_pose, field=args.field, progress=not args.json,

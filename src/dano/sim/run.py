@@ -210,13 +210,13 @@ class ContactBudgetWarning(UserWarning):
 
 
 @functools.cache
-def jitted(fn: Callable) -> Callable:
-    """`fn` under `eqx.filter_jit` with this backend's `compiler_options`, made once per function on
-    first use: its arrays traced, everything else (the world's static structure, a frame count)
-    static, so one compiled program serves every scene of the same structure and its cache is JAX's
-    own, not an attribute of an object."""
-    options = compiler_options(None)
-    return eqx.filter_jit(fn, compiler_options=options)  # pyright: ignore[reportCallIssue]  (jax.jit's keyword)
+def jitted(fn: Callable, options: tuple | None = None) -> Callable:
+    """`fn` under `eqx.filter_jit` with this backend's `compiler_options` (or `options`, XLA's as
+    sorted (name, value) pairs), made once per function on first use: its arrays traced, everything
+    else (the world's static structure, a frame count) static, so one compiled program serves every
+    scene of the same structure and its cache is JAX's own, not an attribute of an object."""
+    xla = compiler_options(None) if options is None else (dict(options) or None)
+    return eqx.filter_jit(fn, compiler_options=xla)  # pyright: ignore[reportCallIssue]  (jax.jit's keyword)
 
 
 def rollout_batch(world: World, params: Params, m: mjx.Model, d: mjx.Data, n: int) -> Trajectory:

@@ -15,8 +15,8 @@ import numpy as np
 
 from dano.build import scale_lengths
 from dano.sim.scene import Scene
+from dano.sysid.configs import SysidError
 from dano.sysid.data import Track, motion_plane_normal, to_metric
-from dano.sysid.params import SysidError
 from dano.sysid.windows import Recording
 
 STANDARD_GRAVITY = 9.81

@@ -4,21 +4,11 @@ is refitted (`Refit`), the deviance followed out to the χ² quantile on each si
 (`profile_bound`), and what the numbers do not say flagged (`_flags`)."""
 
 import dataclasses
-import enum
 
 import numpy as np
 from scipy.stats import chi2
 
 from dano.sysid.lm import Objective, Point, Tolerances, levenberg_marquardt
-
-
-class Interval(enum.StrEnum):
-    """How a parameter's confidence interval is found: `gauss_newton` θ ± z·stderr (free), or
-    `profile` the profile likelihood (about 3 refits per parameter and side; honest where the loss is
-    rough, flat or asymmetric)."""
-
-    gauss_newton = "gauss-newton"
-    profile = "profile"
 
 
 class Refit:
@@ -37,7 +27,7 @@ class Refit:
         point = Point(start, *self.objective.evaluate(start))
         hold = np.zeros(start.size, bool)
         hold[k] = True
-        point, _, _ = levenberg_marquardt(point, self.objective, hold, 20, self.tol, lambda point: None)
+        point, _, _ = levenberg_marquardt(point, self.objective, hold, 20, self.tol)
         self.last[(k, v > self.best.y[k])] = point
         return point.loss
 

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import Array
 
-from dano.results import Result
+from dano.results import AbstractIterativeSolver, Result, iterate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,49 +46,84 @@ class Tolerances(NamedTuple):
     xtol: float
 
 
-def logger(history: list[float], bar) -> Callable[["Point"], None]:
+@dataclasses.dataclass(frozen=True)
+class LMState:
+    """LM's state: the iterate, the one before the last step (None at the start), the Marquardt
+    weight λ, and whether the last step found no decrease."""
+
+    point: Point
+    previous: Point | None = None
+    lam: float = 1e-3
+    failed: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
+class ProjectedLM(AbstractIterativeSolver[LMState]):
+    """Projected LM (module docstring) on `objective` with the unknowns in `hold` fixed; stops on
+    `tol` (`identify`'s docstring) or when no step along the LM direction lowers the loss."""
+
+    objective: Objective
+    hold: np.ndarray
+    tol: Tolerances
+
+    def init(self, start: Point) -> LMState:
+        return LMState(start)
+
+    def _free(self, point: Point) -> np.ndarray:
+        """The unknowns that move: neither held nor pushed by the gradient against an active bound."""
+        y, g, lo, hi = point.y, point.g, self.objective.y_lo, self.objective.y_hi
+        return ~(self.hold | (y <= lo) & (g > 0) | (y >= hi) & (g < 0))
+
+    def terminate(self, state: LMState) -> tuple[bool, Result, str]:
+        point, previous, tol = state.point, state.previous, self.tol
+        if state.failed:
+            return True, Result.successful, "no decrease along the LM direction (a minimum to working precision)"
+        if previous is not None:
+            if previous.loss - point.loss <= max(tol.rtol * previous.loss, tol.ftol):
+                return True, Result.successful, "loss decrease below ftol"
+            if np.all(np.abs(point.y - previous.y) <= tol.xtol * (np.abs(point.y) + tol.xtol)):
+                return True, Result.successful, "step below xtol"
+        if np.max(np.abs(point.g[self._free(point)]), initial=0.0) <= tol.gtol * max(point.loss, 1e-300):
+            return True, Result.successful, "gradient below gtol"
+        return False, Result.successful, ""
+
+    def step(self, state: LMState) -> LMState:
+        """The LM step for the smallest λ (from the last one, ×10 per failure) along whose projected
+        path a backtracking line search lowers the loss; λ ÷ 3 after it."""
+        point, lam = state.point, state.lam
+        free = self._free(point)
+        while lam < 1e12:
+            step = _lm_step(point.H, point.g, free, lam)
+            for alpha in (1.0, 1 / 3, 1 / 9, 1 / 27):
+                y_try = np.clip(point.y + alpha * step, self.objective.y_lo, self.objective.y_hi)
+                loss_try = self.objective.loss_at(y_try)
+                if np.isfinite(loss_try) and loss_try <= point.loss + 1e-4 * point.g @ (y_try - point.y):
+                    return LMState(Point(y_try, *self.objective.evaluate(y_try)), point, lam / 3)
+            lam = lam * 10
+        return LMState(point, state.previous, lam, failed=True)
+
+
+def logger(history: list[float], bar) -> Callable[[LMState], None]:
     """Records an accepted iterate's loss and shows it."""
 
-    def log(point: "Point") -> None:
-        history.append(point.loss)
+    def log(state: LMState) -> None:
+        if state.failed:
+            return
+        history.append(state.point.loss)
         bar.update(1)
-        bar.set_postfix(loss=f"{point.loss:.4g}")
+        bar.set_postfix(loss=f"{state.point.loss:.4g}")
 
     return log
 
 
 def levenberg_marquardt(
-    point: Point, objective: Objective, hold: np.ndarray, max_steps: int, tol: Tolerances, log: Callable
+    point: Point, objective: Objective, hold: np.ndarray, max_steps: int, tol: Tolerances, log: Callable | None = None
 ) -> tuple[Point, Result, str]:
-    """Projected LM iterations from `point` with the unknowns in `hold` fixed; `log` sees every
-    accepted iterate. Returns the last iterate, how it stopped and which test stopped it."""
-    lam = 1e-3
-    y_lo, y_hi = objective.y_lo, objective.y_hi
-    for _ in range(max(max_steps, 0)):
-        y, g = point.y, point.g
-        free = ~(hold | (y <= y_lo) & (g > 0) | (y >= y_hi) & (g < 0))
-        if np.max(np.abs(g[free]), initial=0.0) <= tol.gtol * max(point.loss, 1e-300):
-            return point, Result.successful, "gradient below gtol"
-        accepted = False
-        while not accepted and lam < 1e12:
-            step = _lm_step(point.H, g, free, lam)
-            for alpha in (1.0, 1 / 3, 1 / 9, 1 / 27):
-                y_try = np.clip(y + alpha * step, y_lo, y_hi)
-                loss_try = objective.loss_at(y_try)
-                if np.isfinite(loss_try) and loss_try <= point.loss + 1e-4 * g @ (y_try - y):
-                    accepted = True
-                    break
-            lam = lam / 3 if accepted else lam * 10
-        if not accepted:
-            return point, Result.successful, "no decrease along the LM direction (a minimum to working precision)"
-        previous = point
-        point = Point(y_try, *objective.evaluate(y_try))
-        log(point)
-        if previous.loss - point.loss <= max(tol.rtol * previous.loss, tol.ftol):
-            return point, Result.successful, "loss decrease below ftol"
-        if np.all(np.abs(y_try - y) <= tol.xtol * (np.abs(y_try) + tol.xtol)):
-            return point, Result.successful, "step below xtol"
-    return point, Result.max_steps_reached, "iteration limit"
+    """`ProjectedLM` iterated from `point` (`dano.results.iterate`); `log` sees every new state.
+    Returns the last iterate, how it stopped and which test stopped it."""
+    solver = ProjectedLM(objective, hold, tol)
+    state, result, message, _ = iterate(solver, solver.init(point), max_steps, log)
+    return state.point, result, message
 
 
 def _lm_step(H: np.ndarray, g: np.ndarray, free: np.ndarray, lam: float) -> np.ndarray:

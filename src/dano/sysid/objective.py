@@ -3,23 +3,16 @@ Gauss-Newton Hessian assembled from per-window blocks (each window differentiate
 initial state only), and the robust losses for data with outliers."""
 
 import enum
+import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano.sysid.params import SysidError
-from dano.sysid.problem import Problem, over_windows, residuals, window_residuals
-
-
-class Loss(enum.StrEnum):
-    """The loss on pose residuals (`robust`): `l2` least squares; `huber` and `cauchy` for data with
-    outliers (impacts the model misses, tracking failures)."""
-
-    l2 = "l2"
-    huber = "huber"
-    cauchy = "cauchy"
+from dano.sim.run import jitted
+from dano.sysid.configs import Loss, SysidError
+from dano.sysid.problem import Problem, over_windows, residuals, traced, window_residuals
 
 
 class Jacobian(enum.StrEnum):
@@ -63,47 +56,47 @@ def robust(r: Float[Array, "... 6"], loss: Loss | str, c: float = ROBUST_SCALE) 
 
 
 def compiled(problem: Problem, jac: Jacobian, loss_name: Loss = Loss.l2):
-    """(loss, residuals and normal equations) functions of (θ, δ, windows), jitted once per problem
-    structure. The residuals returned are the plain ones (for the RMS errors); the loss and the
-    normal equations are those of `robust(r, loss_name)`."""
-    key = ("fns", jac, loss_name)
-    if key in problem.cache:
-        return problem.cache[key]
+    """(loss, residuals and normal equations) functions of (θ, δ, windows), compiled once per problem
+    structure (`dano.sim.run.jitted` of the pure functions below, with the problem as an argument:
+    `dano.sysid.problem.traced`). The residuals returned are the plain ones (for the RMS errors);
+    the loss and the normal equations are those of `robust(r, loss_name)`."""
+    key = traced(problem)
+    return (
+        functools.partial(jitted(_loss), key, Loss(loss_name)),
+        functools.partial(jitted(_normal_equations), key, Jacobian(jac), Loss(loss_name)),
+    )
 
-    def loss(theta, delta, windows):
-        r = residuals(problem, theta, delta, windows)
-        r = r if loss_name == "l2" else robust(r, loss_name)  # robust: pose residuals only
-        return 0.5 * jnp.sum(r * r)
 
-    def normal_equations(theta, delta, windows):
-        def one(dl, w):
-            def f(th, d_):
-                plain = window_residuals(problem, th, d_, w).reshape(-1)
-                r = plain if loss_name == "l2" else robust(plain.reshape(-1, 6), loss_name).reshape(-1)
-                return r, (plain, r)
+def _loss(problem: Problem, loss_name: Loss, theta, delta, windows):
+    r = residuals(problem, theta, delta, windows)
+    r = r if loss_name == "l2" else robust(r, loss_name)  # robust: pose residuals only
+    return 0.5 * jnp.sum(r * r)
 
-            if jac == "fwd" and theta.shape[0] + dl.shape[0] == 1:  # one tangent: a jvp, nothing batched
-                (r, (plain, _)), (dr, _) = jax.jvp(f, (theta, dl), (jnp.ones_like(theta), jnp.ones_like(dl)))
-                column = dr[:, None]
-                return plain, r, column[:, : theta.shape[0]], column[:, theta.shape[0] :]
-            differentiate = jax.jacfwd if jac == "fwd" else jax.jacrev
-            (Jt, Jd), (plain, r) = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
-            return plain, r, Jt, Jd
 
-        plain, r, Jt, Jd = over_windows(one, delta, windows)
-        return plain, (
-            0.5 * jnp.sum(r * r),
-            jnp.einsum("nm,nmp->p", r, Jt),
-            jnp.einsum("nm,nms->ns", r, Jd),
-            jnp.einsum("nmp,nmq->pq", Jt, Jt),
-            jnp.einsum("nmp,nms->nps", Jt, Jd),
-            jnp.einsum("nms,nmt->nst", Jd, Jd),
-        )
+def _normal_equations(problem: Problem, jac: Jacobian, loss_name: Loss, theta, delta, windows):
+    def one(dl, w):
+        def f(th, d_):
+            plain = window_residuals(problem, th, d_, w).reshape(-1)
+            r = plain if loss_name == "l2" else robust(plain.reshape(-1, 6), loss_name).reshape(-1)
+            return r, (plain, r)
 
-    opts = problem.compiler_options
-    fns = tuple(jax.jit(f, compiler_options=opts) for f in (loss, normal_equations))
-    problem.cache[key] = fns
-    return fns
+        if jac == "fwd" and theta.shape[0] + dl.shape[0] == 1:  # one tangent: a jvp, nothing batched
+            (r, (plain, _)), (dr, _) = jax.jvp(f, (theta, dl), (jnp.ones_like(theta), jnp.ones_like(dl)))
+            column = dr[:, None]
+            return plain, r, column[:, : theta.shape[0]], column[:, theta.shape[0] :]
+        differentiate = jax.jacfwd if jac == "fwd" else jax.jacrev
+        (Jt, Jd), (plain, r) = differentiate(f, argnums=(0, 1), has_aux=True)(theta, dl)
+        return plain, r, Jt, Jd
+
+    plain, r, Jt, Jd = over_windows(one, delta, windows)
+    return plain, (
+        0.5 * jnp.sum(r * r),
+        jnp.einsum("nm,nmp->p", r, Jt),
+        jnp.einsum("nm,nms->ns", r, Jd),
+        jnp.einsum("nmp,nmq->pq", Jt, Jt),
+        jnp.einsum("nmp,nms->nps", Jt, Jd),
+        jnp.einsum("nms,nmt->nst", Jd, Jd),
+    )
 
 
 def assemble(p: int, n: int, s: int, parts) -> tuple[float, np.ndarray, np.ndarray]:

@@ -2,7 +2,6 @@
 vector θ of them is written into and read from the simulator's `Params`."""
 
 import dataclasses
-import enum
 from collections.abc import Sequence
 
 import equinox as eqx
@@ -11,22 +10,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano.contact.wrench import ContactParams
-from dano.errors import DanoError
 from dano.sim.world import Params
-
-
-class SysidError(DanoError):
-    """A system identification problem that cannot be set up as asked."""
-
-
-class Initial(enum.StrEnum):
-    """Which parts of each window's initial state are unknowns: `none` (read from the data),
-    `velocity`, or `state` (pose and velocity)."""
-
-    none = "none"
-    velocity = "velocity"
-    state = "state"
-
+from dano.sysid.configs import SysidError
 
 CONTACT_KEYS = tuple(f.name for f in dataclasses.fields(ContactParams))
 BODY_KEYS = ("mass_scale", "inertia_scale")

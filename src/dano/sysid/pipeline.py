@@ -1,16 +1,14 @@
 """Files in, identified parameters out: what `dano sysid` runs."""
 
 import dataclasses
-import enum
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
-from dano import validate as V
 from dano.sim.scene import Scene
 from dano.sim.toml import load_scene
+from dano.sysid.configs import SysidConfig, SysidError
 from dano.sysid.data import MIN_FRAMES, read_tracks
 from dano.sysid.frames import (
     RestingPose,
@@ -22,76 +20,10 @@ from dano.sysid.frames import (
     warn_implausible_units,
     with_gravity,
 )
-from dano.sysid.intervals import Interval
-from dano.sysid.objective import Loss
-from dano.sysid.params import Initial, SysidError, canonical
+from dano.sysid.params import canonical
 from dano.sysid.problem import Problem, make_problem, named_after_scene
 from dano.sysid.solve import Identification, identify
 from dano.sysid.windows import Recording
-
-
-class Orientation(enum.StrEnum):
-    """Where the rotations come from: `track` the files' quaternions; `resting` none the tracker could
-    trust: the object lies on one of its stable faces (`resting_poses`) at one of `YAWS`."""
-
-    track = "track"
-    resting = "resting"
-
-
-@dataclasses.dataclass(frozen=True)
-class SysidConfig:
-    """What to fit and how to read the data (the `dano sysid` options).
-
-    Attributes:
-        fit: parameter names as the user writes them (`friction`, `mass_scale`, any contact key).
-        fps: frame rate for files without a `t` column.
-        scale: metres per tracker unit (positions only; the scene's DANOs are taken as metric).
-        size: the object's real longest dimension along its principal axes, m: the scene's DANO and
-            the positions share the tracker's units and are both scaled by size / (the DANO's
-            longest principal extent, `dano info`).
-        gravity: None (the scene's gravity and ground), a direction (3,) in the data's frame, or
-            "fit" (the normal of the plane of motion, the sign that fits better at the initial guess).
-        body: the scene body that files without a `body` column observe.
-        window: frame intervals per shooting window (None: whole trajectories).
-        initial: "none", "velocity" or "state": initial-state parts fitted per window.
-        sigma: tracking noise, m.
-        init, bounds: initial guesses and (low, high) bounds by name as given in `fit`.
-        max_steps: Levenberg-Marquardt iterations at most.
-        rotation_weight: multiplies the rotation residuals (0: positions only).
-        settle: m; a body within this of the ground at a window's start is put on it (None: 3 sigma,
-            0: the data as they are; `make_problem`).
-        frames: (first, stop) rows of every file to fit (0-based, stop excluded; None: all).
-        interval: "profile" or "gauss-newton" (`identify`).
-        loss: "l2", "huber" or "cauchy" (`identify`, `dano.sysid.objective.robust`).
-        orientation: "track" (the files' quaternions), or "resting": the tracker could not resolve
-            rotation; the object lies on one of its stable faces (`resting_poses`) at one of
-            `YAWS`, the pair that fits best at the initial guess, positions only.
-        level: confidence level of the intervals.
-    """
-
-    fit: tuple[str, ...]
-    fps: float | None = None
-    scale: float | None = None
-    size: float | None = None
-    gravity: Sequence[float] | Literal["fit"] | None = None
-    body: str | None = None
-    window: int | None = None
-    initial: Initial | str = Initial.none
-    sigma: float = 1e-3
-    init: dict = dataclasses.field(default_factory=dict)
-    bounds: dict = dataclasses.field(default_factory=dict)
-    max_steps: int = 50
-    rotation_weight: float = 1.0
-    settle: float | None = None
-    interval: Interval | str = Interval.gauss_newton
-    level: float = 0.95
-    frames: tuple[int, int | None] | None = None
-    loss: Loss | str = Loss.l2
-    orientation: Orientation | str = Orientation.track
-
-    def __post_init__(self):
-        for name, kind in (("initial", Initial), ("interval", Interval), ("loss", Loss), ("orientation", Orientation)):
-            object.__setattr__(self, name, V.option(getattr(self, name), name, SysidError, kind))
 
 
 def load_recordings(
@@ -220,9 +152,8 @@ def _lying_still(scene: Scene, recordings: list[Recording], config: SysidConfig,
     candidates = [(k, yaw) for k in range(len(poses)) for yaw in YAWS]
     problems, losses = [], []
     for k, yaw in candidates:
-        problem = build(scene, lying(poses[k], yaw))
         # one structure for every candidate: the first one's compiled functions serve them all
-        problems.append(problem if not problems else dataclasses.replace(problem, cache=problems[0].cache))
+        problems.append(build(scene, lying(poses[k], yaw)))
         losses.append(_initial_loss(problems[-1], init, bounds))
     if not np.isfinite(min(losses)):
         raise SysidError("no resting orientation gives a finite loss at the initial guess")

@@ -30,17 +30,12 @@ from dano import validate as V
 from dano._mjx import mjx
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul
 from dano.sim.compile import compile_scene
-from dano.sim.run import at_interval
+from dano.sim.run import at_interval, jitted
 from dano.sim.scene import DanoBody, Primitive, Scene
 from dano.sim.step import rollout
 from dano.sim.world import Params, World
-from dano.sysid.params import (
-    Initial,
-    SysidError,
-    canonical,
-    current_values,
-    with_values,
-)
+from dano.sysid.configs import Initial, SysidError
+from dano.sysid.params import canonical, current_values, with_values
 from dano.sysid.windows import Observed, Recording, Windows, build_windows
 
 
@@ -75,10 +70,13 @@ class AbstractObservation(eqx.Module):
         """The root mean square error, in the observation's own units, of residuals (n, W, k)."""
 
 
-@dataclasses.dataclass(frozen=True)
-class Problem:
+class Problem(eqx.Module):
     """A compiled identification problem: the scene at the data's frame rate, the windows, and what
     is fitted. Build with `make_problem`; evaluate with `residuals`.
+
+    A pytree: its arrays (the world's, the MJX model and data, the parameters, the windows) are
+    traced and the rest is static, so the compiled functions of `dano.sysid.objective` take it as
+    an argument (`traced`) and problems of one structure share them (JAX's own cache).
 
     Attributes:
         names: the fitted parameters (canonical names), θ in this order.
@@ -93,16 +91,13 @@ class Problem:
     data: mjx.Data
     params: Params
     windows: Windows
-    observed: tuple[Observed, ...]
-    names: tuple[str, ...]
-    n_frames: int
-    initial: Initial
-    sigma: float
-    recordings: int
-    compiler_options: dict | None = None
-    cache: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
-    """Compiled functions of this problem's structure (reused for new data of the same shapes)."""
-    adjustments: dict = dataclasses.field(default_factory=dict, compare=False)
+    observed: tuple[Observed, ...] = eqx.field(static=True)
+    names: tuple[str, ...] = eqx.field(static=True)
+    n_frames: int = eqx.field(static=True)
+    initial: Initial = eqx.field(static=True)
+    sigma: float = eqx.field(static=True)
+    recordings: int = eqx.field(static=True)
+    adjustments: dict = eqx.field(default_factory=dict)
     """What was changed between the data and the simulation, by kind (reported in the result):
     `timestep` (the scene's step replaced by the frame interval), `settle` (bodies put on the ground
     at a window's start), and what the caller adds (`scale`, `gravity`, ...)."""
@@ -219,12 +214,10 @@ def make_problem(
     if settled:
         adjustments["settle"] = settled
     current_values(params, names)  # raises if a name has nothing to act on
-    from dano.sim.run import compiler_options
-
     return Problem(
-        scene=scene, world=world, model=m, data=d, params=params, windows=windows, observed=observed,
+        scene=scene, world=world, model=m, data=d, params=params, windows=windows, observed=tuple(observed),
         names=names, n_frames=W, initial=initial, sigma=float(sigma), recordings=len(recordings),
-        compiler_options=compiler_options(world), adjustments=adjustments,
+        adjustments=adjustments,
     )  # fmt: skip
 
 
@@ -397,10 +390,27 @@ def simulate_window(
 
 def simulate_windows(problem: Problem, theta, delta) -> Float[Array, "n f nq"]:
     """qpos (n, W + 1, nq) of every window's simulation (its initial state first), for plots and reports."""
-    if "simulate" not in problem.cache:
+    return jitted(_simulate_windows)(traced(problem), jnp.asarray(theta), jnp.asarray(delta))
 
-        def batched(th, dl, w):
-            return over_windows(lambda dl, w: simulate_window(problem, th, dl, w), dl, w)
 
-        problem.cache["simulate"] = jax.jit(batched, compiler_options=problem.compiler_options)
-    return problem.cache["simulate"](jnp.asarray(theta), jnp.asarray(delta), problem.windows)
+def _simulate_windows(problem: Problem, theta, delta) -> Float[Array, "n f nq"]:
+    return over_windows(lambda dl, w: simulate_window(problem, theta, dl, w), delta, problem.windows)
+
+
+class _Untraced:
+    """Stands, in `traced`, for what no compiled function reads; fails on use."""
+
+    def __getattr__(self, name: str):
+        raise AttributeError(f"a traced Problem has no scene or adjustments (asked for {name!r}): read them outside")
+
+
+_UNTRACED = _Untraced()
+
+
+def traced(problem: Problem) -> Problem:
+    """`problem` as the compiled functions take it (`dano.sim.run.jitted`: its arrays traced, the
+    rest static and part of the compiled program's key). Its scene and its adjustments say where it
+    came from and no computation reads them (the world and model were compiled from the scene): they
+    are replaced by a marker that fails on use, so that problems of one structure share one program
+    whatever their scene's arrays or their record of adjustments."""
+    return eqx.tree_at(lambda p: (p.scene, p.adjustments), problem, replace=(_UNTRACED, _UNTRACED))

@@ -19,10 +19,11 @@ from tqdm.auto import tqdm
 
 from dano import validate as V
 from dano.results import AbstractSolution, Result, finish
-from dano.sysid.intervals import Interval, gauss_newton_intervals, profile_intervals
+from dano.sysid.configs import Interval, SysidError
+from dano.sysid.intervals import gauss_newton_intervals, profile_intervals
 from dano.sysid.lm import Objective, Point, Tolerances, levenberg_marquardt, logger
 from dano.sysid.objective import Jacobian, Loss, assemble, compiled
-from dano.sysid.params import DEFAULT_BOUNDS, SysidError, canonical, current_values
+from dano.sysid.params import DEFAULT_BOUNDS, canonical, current_values
 from dano.sysid.problem import Problem
 
 

@@ -11,8 +11,8 @@ import numpy as np
 from jaxtyping import Array, Float, PyTree
 
 from dano.sim.world import Params, World, pairs
+from dano.sysid.configs import SysidError
 from dano.sysid.data import Track, estimate_velocity
-from dano.sysid.params import SysidError
 
 
 @dataclasses.dataclass(frozen=True)

@@ -18,22 +18,20 @@ Q_uu (raised when Q_uu is not positive definite or a step fails, lowered after a
 backtracking line search on the closed-loop rollout accepting a step when the cost falls by a
 fraction of the quadratic model's prediction.
 
-Every piece is jitted once per problem (`compiled`, shared by every solve of it); the loops run in
-Python so a progress bar can follow them.
+Every piece is compiled once per problem (`Pieces.call`: JAX's own cache, shared by every solve of
+it); the loops run in Python so a progress bar can follow them.
 """
 
 import dataclasses
-import functools
 import time
 from collections.abc import Callable
 from typing import NamedTuple
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano.results import AbstractSolution, Result, finish
+from dano.results import AbstractIterativeSolver, AbstractSolution, Result, finish, iterate
 from dano.trajopt.pieces import (
     OptimalControlProblem,
     Pieces,
@@ -43,8 +41,8 @@ from dano.trajopt.pieces import (
     expand,
     forward,
     objective,
+    pieces,
     violation,
-    width,
 )
 
 
@@ -139,42 +137,15 @@ class _Multipliers(NamedTuple):
     rho: float
 
 
-@functools.lru_cache(maxsize=8)
-def compiled(problem: OptimalControlProblem, n: int, m: int) -> "_Compiled":
-    """The jitted pieces of `problem` for states of size n and controls of size m, built once per
-    problem: a warm start's rollouts and every later `solve` of the same problem share them (and
-    their compiled programs)."""
-    return _Compiled(problem, n, m)
-
-
-class _Compiled:
-    """The jitted pieces of one problem (built once; shapes fixed by x0 and the controls)."""
-
-    def __init__(self, problem: OptimalControlProblem, n: int, m: int):
-        T = problem.horizon
-        self.p = width(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
-        self.q = width(problem.terminal_constraints, jnp.zeros(n))
-        given_c, given_h = problem.constraints, problem.terminal_constraints  # not None where p, q > 0
-        c_fn = given_c if self.p and given_c is not None else (lambda x, u, t: jnp.zeros(0))
-        h_fn = given_h if self.q and given_h is not None else (lambda x: jnp.zeros(0))
-        f = Pieces(problem, c_fn, h_fn, jnp.arange(T), n, m)
-
-        def jit(fn, **kw):
-            return jax.jit(functools.partial(fn, f), compiler_options=problem.compiler_options, **kw)
-
-        self.objective = jit(objective)
-        self.violation = jit(violation)
-        self.augmented = jit(augmented)
-        self.expand = jit(expand, static_argnums=5)
-        self.backward = jit(backward)
-        self.forward = jit(forward)
-        self._zeros = (jnp.zeros((T + 1, n)), jnp.zeros((T, m)), jnp.zeros((T, m, n)))
-
-    def rollout(self, x0: Array, us: Array) -> Array:
-        """The open-loop rollout (T+1, n): the closed-loop one with no feedback and no step, so the
-        dynamics are compiled once for both."""
-        xs, k, K = self._zeros
-        return self.forward(xs.at[0].set(x0), us, k, K, 0.0)[0]
+def open_loop(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: Float[Array, "T m"]) -> Array:
+    """The states (T+1, n) of the open-loop `controls` from x0, as the solver rolls them out: its
+    closed-loop forward pass with no feedback and no step, so the dynamics are compiled once for
+    both (a warm start's rollouts and every later `solve` of the problem share the program)."""
+    us = jnp.asarray(controls)
+    T, m = us.shape
+    f = pieces(problem, x0.shape[0], m)
+    xs = jnp.zeros((T + 1, f.n)).at[0].set(x0)
+    return f.call(forward, xs, us, jnp.zeros((T, m)), jnp.zeros((T, m, f.n)), 0.0)[0]
 
 
 def solve(
@@ -204,8 +175,8 @@ def solve(
     if not bool(jnp.all(jnp.isfinite(x0))):
         raise TrajoptError("the initial state is not finite")
     n, m = x0.shape[0], us.shape[1]
-    fn = compiled(problem, n, m)
-    xs = fn.rollout(x0, us)
+    fn = pieces(problem, n, m)
+    xs = open_loop(problem, x0, us)
     if not bool(jnp.all(jnp.isfinite(xs))):
         raise TrajoptError("the initial controls' rollout is not finite")
     it = _Iterate(xs, us, options.regularization, 0)
@@ -216,7 +187,7 @@ def solve(
     try:
         for outer in range(1, options.max_outer + 1):  # noqa: B007 (reported after the loop)
             it, inner = _inner(fn, it, mult, options, _logger(fn, history, bar, mult.rho))
-            worst_j, c, h = fn.violation(it.xs, it.us)
+            worst_j, c, h = fn.call(violation, it.xs, it.us)
             worst = float(worst_j)
             if worst <= options.constraint_tol and inner.converged:
                 result, message = Result.successful, f"constraint violation {worst:.2e} <= {options.constraint_tol:g}"
@@ -243,19 +214,22 @@ def solve(
     message = f"{result.value}: {message}"
     finish(result, f"iLQR {message}", throw)
     return Solution(
-        states=np.asarray(it.xs), controls=np.asarray(it.us), cost=float(fn.objective(it.xs, it.us)),
-        max_violation=float(fn.violation(it.xs, it.us)[0]), result=result, message=message,
+        states=np.asarray(it.xs), controls=np.asarray(it.us), cost=float(fn.call(objective, it.xs, it.us)),
+        max_violation=float(fn.call(violation, it.xs, it.us)[0]), result=result, message=message,
         iterations=it.iterations, outer=outer, seconds=time.perf_counter() - start, history=history,
         multipliers=(np.asarray(mult.lam), np.asarray(mult.nu)),
     )  # fmt: skip
 
 
-def _logger(fn: "_Compiled", history: list, bar, rho: float) -> Callable:
+def _logger(fn: Pieces, history: list, bar, rho: float) -> Callable[["_InnerState"], None]:
     """Records an iteration (cost, violation, accepted step or 0, regularisation) and shows it."""
 
-    def log(xs, us, alpha: float, reg: float) -> None:
-        worst = float(fn.violation(xs, us)[0])
-        history.append((float(fn.objective(xs, us)), worst, alpha, reg))
+    def log(state: _InnerState) -> None:
+        if state.alpha is None:  # stopped before a line search: nothing was tried
+            return
+        xs, us, reg, _ = state.it
+        worst = float(fn.call(violation, xs, us)[0])
+        history.append((float(fn.call(objective, xs, us)), worst, state.alpha, reg))
         if bar is not None:
             bar.update(1)
             bar.set_postfix(cost=f"{history[-1][0]:.4g}", violation=f"{worst:.1e}", rho=f"{rho:.0e}")
@@ -263,49 +237,71 @@ def _logger(fn: "_Compiled", history: list, bar, rho: float) -> Callable:
     return log
 
 
-def _inner(fn: "_Compiled", it: _Iterate, mult: _Multipliers, o: Options, log: Callable) -> tuple[_Iterate, Result]:
-    """iLQR on the augmented cost for fixed multipliers, from `it` until its cost stops falling
-    (`successful`), the line search fails at the regularisation limit (`stalled`) or the
-    iteration limit (`max_steps_reached`)."""
-    xs, us, reg, iterations = it
-    J = float(fn.augmented(xs, us, *mult))
-    expansion = None
-    while iterations < o.max_iterations:
+def _inner(fn: Pieces, it: _Iterate, mult: _Multipliers, o: Options, log: Callable) -> tuple[_Iterate, Result]:
+    """`_AugmentedILQR` iterated from `it` (`dano.results.iterate`) within the iteration budget."""
+    solver = _AugmentedILQR(fn, mult, o)
+    state, result, _, _ = iterate(solver, solver.init(it), o.max_iterations - it.iterations, log)
+    return state.it, result
+
+
+class _InnerState(NamedTuple):
+    """iLQR's state: the iterate, its augmented cost J, the expansion along it (None: not yet
+    taken), the last accepted step size (0: none; None: no line search), and how the last step
+    ended the solve (None: it did not)."""
+
+    it: _Iterate
+    J: float
+    expansion: tuple | None = None
+    alpha: float | None = None
+    stop: Result | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
+    """iLQR on the augmented cost for fixed multipliers (module docstring): stops when its cost stops
+    falling (`successful`) or the line search fails at the regularisation limit (`stalled`)."""
+
+    fn: Pieces
+    mult: _Multipliers
+    o: Options
+
+    def init(self, start: _Iterate) -> _InnerState:
+        return _InnerState(start, float(self.fn.call(augmented, start.xs, start.us, *self.mult)))
+
+    def terminate(self, state: _InnerState) -> tuple[bool, Result, str]:
+        return state.stop is not None, state.stop or Result.successful, ""
+
+    def step(self, state: _InnerState) -> _InnerState:
+        """Expansion (kept after a rejected step: only the regularisation changes), Riccati pass
+        (regularisation raised until Q_uu is positive definite), backtracking line search."""
+        fn, o, (xs, us, reg, iterations), J = self.fn, self.o, state.it, state.J
         iterations += 1
-        if expansion is None:  # kept after a rejected step: only the regularisation changes
-            expansion = fn.expand(xs, us, *mult, o.jacobian_batch)
+        expansion = state.expansion or fn.call(expand, xs, us, *self.mult, o.jacobian_batch)
         A, B, g, H, gT, HT = expansion
         while True:
-            k, K, dV, failed = fn.backward(A, B, g, H, gT, HT, reg)
+            k, K, dV, failed = fn.call(backward, A, B, g, H, gT, HT, reg)
             if not bool(failed):
                 break
             reg = reg * 10.0
             if reg > o.reg_max:
-                return _Iterate(xs, us, o.reg_max, iterations), Result.stalled
+                return _InnerState(_Iterate(xs, us, o.reg_max, iterations), J, expansion, None, Result.stalled)
         step_small = float(jnp.max(jnp.abs(k))) <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
-        accepted = False
         for alpha in o.line_search:
-            x_new, u_new = fn.forward(xs, us, k, K, alpha)
+            x_new, u_new = fn.call(forward, xs, us, k, K, alpha)
             if not bool(jnp.all(jnp.isfinite(x_new))):
                 continue
-            J_new = float(fn.augmented(x_new, u_new, *mult))
+            J_new = float(fn.call(augmented, x_new, u_new, *self.mult))
             predicted = -(alpha * float(dV[0]) + alpha**2 * float(dV[1]))
             if J - J_new >= o.armijo * max(predicted, 0.0) and J_new <= J:
-                accepted = True
-                break
-        if accepted:
-            decrease = J - J_new
-            xs, us, J, expansion = x_new, u_new, J_new, None
-            reg = max(o.reg_min, reg / 10.0)
-        else:
-            decrease = 0.0
-            reg = reg * 10.0
-        log(xs, us, alpha if accepted else 0.0, reg)
-        if step_small or (accepted and decrease <= o.cost_tol * max(abs(J), 1e-12)):
-            return _Iterate(xs, us, reg, iterations), Result.successful
-        if not accepted and reg > o.reg_max:
-            return _Iterate(xs, us, o.reg_max, iterations), Result.stalled
-    return _Iterate(xs, us, reg, iterations), Result.max_steps_reached
+                it = _Iterate(x_new, u_new, max(o.reg_min, reg / 10.0), iterations)
+                done = step_small or J - J_new <= o.cost_tol * max(abs(J_new), 1e-12)
+                return _InnerState(it, J_new, None, alpha, Result.successful if done else None)
+        reg = reg * 10.0
+        if step_small:
+            return _InnerState(_Iterate(xs, us, reg, iterations), J, expansion, 0.0, Result.successful)
+        if reg > o.reg_max:
+            return _InnerState(_Iterate(xs, us, o.reg_max, iterations), J, expansion, 0.0, Result.stalled)
+        return _InnerState(_Iterate(xs, us, reg, iterations), J, expansion, 0.0)
 
 
 def _bar(progress: bool, total: int):

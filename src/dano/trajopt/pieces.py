@@ -1,7 +1,7 @@
 """The optimal control problem (`OptimalControlProblem`) and the pure functions iLQR is made of:
 the objective, the constraint violation, the augmented Lagrangian, its expansion along a
-trajectory, the Riccati backward pass and the closed-loop forward pass (`dano.trajopt.ilqr` jits
-them once per problem and runs the loops)."""
+trajectory, the Riccati backward pass and the closed-loop forward pass (`Pieces.call` compiles
+each once per problem; `dano.trajopt.ilqr` runs the loops)."""
 
 import dataclasses
 from collections.abc import Callable
@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dano.errors import DanoError
+from dano.sim.run import jitted
 
 
 class TrajoptError(DanoError):
@@ -20,7 +21,7 @@ class TrajoptError(DanoError):
 @dataclasses.dataclass(frozen=True, eq=False)
 class OptimalControlProblem:
     """x' = f(x, u, t) with costs and constraints (see the module docstring); all pure JAX functions.
-    Hashed by identity: its compiled pieces are kept per problem (`compiled`).
+    Hashed by identity: its pieces are compiled once per problem (`Pieces.call`).
 
     Attributes:
         dynamics: f(x (n,), u (m,), t) -> (n,).
@@ -60,17 +61,25 @@ def width(fn, *args) -> int:
     return 0 if fn is None else int(jax.eval_shape(fn, *args).shape[0])
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
+@dataclasses.dataclass(frozen=True)
 class Pieces:
     """A problem's functions as the solver's pieces use them: constraints that are empty vectors
-    where the problem has none, the time indices, the state and control sizes."""
+    where the problem has none (p, q: their lengths), the state and control sizes. Hashable, and
+    equal for the same problem (by identity) and sizes: it is the static argument under which
+    `call` compiles each piece once (JAX's own cache, shared by every solve of the problem)."""
 
     problem: OptimalControlProblem
     c: Callable  # c(x, u, t) -> (p,)
     h: Callable  # h(x) -> (q,)
-    ts: Array  # (T,)
     n: int
     m: int
+    p: int
+    q: int
+
+    @property
+    def ts(self) -> Array:
+        """The time indices (T,)."""
+        return jnp.arange(self.problem.horizon)
 
     def running(self, x, u, t, lam, rho, active):
         c = self.c(x, u, t)
@@ -82,6 +91,31 @@ class Pieces:
 
     def constraints(self, xs, us):
         return jax.vmap(self.c)(xs[:-1], us, self.ts)
+
+    def call(self, fn: Callable, *args):
+        """fn(self, *args), compiled once per piece and problem (`dano.sim.run.jitted`, with the
+        problem's `compiler_options`). Python numbers (a step length, a penalty) are passed as
+        arrays, not compiled in; ints (a batch size) stay static."""
+        options = tuple(sorted((self.problem.compiler_options or {}).items()))
+        args = tuple(jnp.asarray(a) if isinstance(a, float) else a for a in args)
+        return jitted(fn, options)(self, *args)
+
+
+def _no_constraints(x, u, t):
+    return jnp.zeros(0)
+
+
+def _no_terminal_constraints(x):
+    return jnp.zeros(0)
+
+
+def pieces(problem: OptimalControlProblem, n: int, m: int) -> Pieces:
+    """`problem`'s pieces for states of size n and controls of size m."""
+    p = width(problem.constraints, jnp.zeros(n), jnp.zeros(m), 0)
+    q = width(problem.terminal_constraints, jnp.zeros(n))
+    c = problem.constraints if p and problem.constraints is not None else _no_constraints
+    h = problem.terminal_constraints if q and problem.terminal_constraints is not None else _no_terminal_constraints
+    return Pieces(problem, c, h, n, m, p, q)
 
 
 def active_set(c, lam):

@@ -22,7 +22,7 @@ from dano.scenarios import push_scene
 from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Integrator, Scene
 from dano.sim.step import Trajectory, scaled_model, step
-from dano.trajopt.ilqr import Options, Solution, compiled, solve
+from dano.trajopt.ilqr import Options, Solution, open_loop, solve
 from dano.trajopt.pieces import OptimalControlProblem, TrajoptError
 from dano.trajopt.pushers import AbstractPusher, dof, pusher
 from dano.trajopt.task import PushTask
@@ -174,9 +174,8 @@ def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np
     iLQR needs a start in contact: from zero controls the pusher never touches the object and the
     goal has no gradient in the controls."""
     start = jnp.asarray(x0)
-    fn = compiled(problem, start.shape[0], guesses[0].shape[1])  # the solver's own rollout, compiled once
     # one after another: on a CPU a vmapped rollout runs no faster and compiles its own program
-    misses = np.array([float(jnp.linalg.norm(miss(fn.rollout(start, jnp.asarray(u))[-1]))) for u in guesses])
+    misses = np.array([float(jnp.linalg.norm(miss(open_loop(problem, start, jnp.asarray(u))[-1]))) for u in guesses])
     misses = np.where(np.isfinite(misses), misses, np.inf)
     return guesses[int(np.argmin(misses))]
 

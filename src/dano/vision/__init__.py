@@ -7,9 +7,9 @@ Names load on first use (PEP 562): the settings (`configs`) import no JAX, so th
 reads them to build its options and `dano --help` stays instant.
 """
 
-import importlib
-import warnings
 from typing import TYPE_CHECKING
+
+from dano._lazy import attach
 
 _LAZY = {
     "Camera": "dano.vision.camera",
@@ -65,20 +65,8 @@ if TYPE_CHECKING:
     from dano.vision.track import track
 
 
-def __getattr__(name: str):
-    if name == "render_video":  # renamed in 0.2 (dano.sim.render.render_video renders a simulation); goes in 0.3
-        warnings.warn("dano.vision.render_video is now dano.vision.render_mesh_video", DeprecationWarning, stacklevel=2)
-        return __getattr__("render_mesh_video")
-    if name not in _LAZY:
-        raise AttributeError(f"module 'dano.vision' has no attribute {name!r}")
-    value = getattr(importlib.import_module(_LAZY[name]), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
-
+# render_video: renamed in 0.2 (dano.sim.render.render_video renders a simulation); goes in 0.3
+__getattr__, __dir__ = attach(__name__, _LAZY, renamed={"render_video": "render_mesh_video"})
 
 __all__ = [
     "Camera", "FitConfig", "GridModel", "MlpModel", "MaskConfig", "TrackConfig", "Views", "VisionDataError",

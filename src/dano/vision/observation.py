@@ -15,7 +15,7 @@ from dano.fields import AbstractField
 from dano.fields.base import Bounds, CallableField, as_bounds
 from dano.fields.grid import GridField
 from dano.math import quat_conj, quat_exp, quat_mul, quat_to_mat, smootherstep
-from dano.sysid.params import SysidError
+from dano.sysid.configs import SysidError
 from dano.sysid.problem import AbstractObservation, Problem, own_unknowns
 from dano.sysid.windows import Windows
 from dano.vision.camera import Camera

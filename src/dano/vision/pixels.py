@@ -42,10 +42,10 @@ from tqdm.auto import tqdm
 from dano.fields import AbstractField
 from dano.fields.grid import GridField
 from dano.sim.scene import DanoBody, Scene
+from dano.sysid.configs import SysidConfig, SysidError
 from dano.sysid.data import Track
 from dano.sysid.frames import scene_dano
-from dano.sysid.params import SysidError
-from dano.sysid.pipeline import SysidConfig, canonical_fit
+from dano.sysid.pipeline import canonical_fit
 from dano.sysid.problem import Problem, make_problem, own_unknowns
 from dano.sysid.solve import Identification, identify
 from dano.sysid.windows import Recording
