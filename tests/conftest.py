@@ -1,5 +1,6 @@
 """Test configuration: float64, strict shapes and dtypes, shared fixtures."""
 
+import gc
 import os
 from pathlib import Path
 
@@ -15,6 +16,18 @@ os.environ["DANO_COMPILATION_CACHE"] = "off"
 
 SHARED = Path(os.environ.get("DANO_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared")).resolve()
 DOJO = SHARED / "data" / "dojo"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """After each test module, JAX's compiled programs are let go. Every jitted function keeps what
+    it compiled for as long as the process lives (JAX's design, right for a program that reuses
+    them); a test worker runs some 200 tests' worth of distinct programs, and kept together they
+    grow past the kernel's memory-map limit (vm.max_map_count, 65530: measured 30k maps and 5.4 GB
+    halfway through a worker), where XLA's next compilation aborts the process."""
+    yield
+    gc.collect()
+    jax.clear_caches()
 
 
 @pytest.fixture(scope="session")
