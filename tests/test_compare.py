@@ -17,9 +17,10 @@ import trimesh
 import dano
 from dano.baselines import compare as C
 from dano.baselines import models as M
-from dano.baselines.mesh import clean_mesh, convex_decomposition, level_set_mesh
+from dano.baselines.mesh import clean_mesh, convex_decomposition
 from dano.errors import MeshError
 from dano.fields import BoxField, CallableField
+from dano.surface import level_set_mesh
 
 SIZE = (0.10, 0.06, 0.04)
 BOX = BoxField(SIZE, width=0.002)  # peak 1000

@@ -8,7 +8,6 @@ import equinox as eqx
 import numpy as np
 import pytest
 
-pytest.importorskip("skimage", reason="the mesh path's extra (pip install 'dano[baselines]')")
 pytest.importorskip("vhacdx", reason="the mesh path's extra (pip install 'dano[baselines]')")
 
 from dano import build_dano  # noqa: E402

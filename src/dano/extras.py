@@ -1,6 +1,6 @@
 """Optional dependencies: features that need a heavy package install it as an extra, and say so.
 
-    pip install "dano[baselines]"   # the mesh path (dano compare): scikit-image, CoACD, V-HACD, decimation
+    pip install "dano[baselines]"   # the mesh path (dano compare): CoACD, V-HACD, decimation
     pip install "dano[robots]"      # the Franka Panda from example-robot-data (440 MB)
     pip install "dano[bench]"       # bench/sysid.py's comparison solver (optimistix)
 
@@ -13,7 +13,6 @@ from types import ModuleType
 from dano.errors import DanoError
 
 EXTRAS = {
-    "skimage": ("scikit-image", "baselines"),
     "coacd": ("coacd", "baselines"),
     "vhacdx": ("vhacdx", "baselines"),
     "fast_simplification": ("fast-simplification", "baselines"),

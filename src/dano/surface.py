@@ -5,6 +5,9 @@ first `n` whose density lies in the window [low, high] are kept. A prefix of a S
 evenly spread over the box, so the kept points are evenly spread over the band of the surface the
 window selects, with no clumps and no duplicates (the reference strided a jittered grid instead).
 Outward normals are -grad phi / |grad phi|, by autodiff or by central differences.
+
+The surface as a triangle mesh (`level_set_mesh`, `surface_mesh`: marching cubes at a density level)
+is for pictures and for the mesh path; the contact model uses the points.
 """
 
 from typing import Literal
@@ -13,13 +16,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import trimesh
 from jaxtyping import Array, Float
 from scipy.stats import qmc
 
-from dano.errors import EmptyFieldError, EmptyWindowError
-from dano.fields.base import AbstractField, check_densities
+from dano.errors import EmptyFieldError, EmptyWindowError, MeshError
+from dano.fields.base import AbstractField, check_densities, evaluate
+from dano.fields.grid import GridField, grid_nodes
 from dano.math import normalize
 from dano.sampling import sobol_unit, to_box
+from dano.types import DANO
 
 WINDOW_FRACTIONS = (0.1, 0.9)
 """Default window as fractions of the field's peak: symmetric about the half level, the surface."""
@@ -148,3 +154,57 @@ def sample_surface(
 @eqx.filter_jit
 def _normals_jit(field, points, method, step):
     return outward_normals(field, points, method, step)
+
+
+def level_set_mesh(field: AbstractField, level: float, resolution: int = 100) -> trimesh.Trimesh:
+    """The surface {phi = level} by marching cubes (scikit-image) on a grid over the field's box.
+
+    The grid is padded with one layer of zeros, so a surface that reaches the box (a floater at
+    the domain's edge) still closes. Faces are wound outward (positive volume).
+
+    Args:
+        level: the density level, in the field's own units.
+        resolution: grid nodes along the box's longest side (voxels are cubes).
+
+    Raises:
+        MeshError: no surface at that level (it is above the field's maximum or not positive).
+    """
+    from skimage.measure import marching_cubes
+
+    if not level > 0:
+        raise MeshError(f"the level must be a positive density, got {level}")
+    if resolution < 8:
+        raise MeshError(f"resolution must be >= 8, got {resolution}")
+    lo, hi = (np.asarray(b, dtype=float) for b in field.bounds)
+    h = float(np.max(hi - lo)) / (resolution - 1)
+    shape = tuple(int(np.ceil((hi[i] - lo[i]) / h)) + 1 for i in range(3))
+    nodes = grid_nodes((tuple(lo), tuple(lo + h * (np.asarray(shape) - 1))), shape)  # type: ignore[arg-type]
+    values = np.pad(evaluate(field, nodes.reshape(-1, 3)).reshape(shape), 1)
+    if not values.max() > level:
+        raise MeshError(f"no surface at level {level:g}: the field's densities are at most {values.max():g}")
+    verts, faces, _, _ = marching_cubes(values, level=level, spacing=(h, h, h))
+    return outward(trimesh.Trimesh(verts + lo - h, faces, process=True))
+
+
+def outward(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The mesh with its faces wound outward (positive volume), inverted in place if they were not."""
+    if mesh.volume < 0:
+        mesh.invert()
+    return mesh
+
+
+def surface_mesh(dano: DANO, resolution: int = 64) -> trimesh.Trimesh:
+    """The DANO's surface as a triangle mesh in its body frame (the object frame shifted to the
+    centre of mass): marching cubes of its baked density grid at the middle of its density window,
+    the band its surface points were drawn from. For pictures and for plain MuJoCo's visual geoms;
+    the contact model never uses it.
+
+    Raises:
+        MeshError: the DANO carries no baked grid (a reference collider: rebuild it with `dano build`).
+    """
+    if dano.grid is None or dano.grid_bounds is None:
+        raise MeshError("the DANO carries no density grid to mesh: rebuild it with `dano build`")
+    level = 0.5 * float(dano.window[0] + dano.window[1])
+    mesh = level_set_mesh(GridField(dano.grid, dano.grid_bounds), level, resolution)
+    mesh.apply_translation(-np.asarray(dano.com, dtype=float))
+    return mesh

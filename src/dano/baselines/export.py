@@ -19,34 +19,17 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-import trimesh
 
-from dano.baselines.mesh import convex_decomposition, level_set_mesh
-from dano.errors import DanoError
-from dano.fields.grid import GridField
+from dano.baselines.mesh import convex_decomposition
+from dano.errors import DanoError, MeshError
 from dano.io import atomic_folder, atomic_write
 from dano.sim.compile import scene_spec
 from dano.sim.scene import DanoBody, Scene
+from dano.surface import surface_mesh
 
 
 class ExportError(DanoError):
     """A scene that cannot be written for plain MuJoCo as asked."""
-
-
-def dano_surface(body: DanoBody, resolution: int = 64) -> trimesh.Trimesh:
-    """The DANO's surface in its body frame (object frame shifted to the centre of mass): marching
-    cubes of its baked grid at the middle of its density window.
-
-    Raises:
-        ExportError: the DANO carries no baked grid (a reference collider: rebuild it with `dano build`).
-    """
-    d = body.dano
-    if d.grid is None or d.grid_bounds is None:
-        raise ExportError(f"the DANO {body.name!r} carries no density grid to mesh: rebuild it with `dano build`")
-    level = 0.5 * float(d.window[0] + d.window[1])
-    mesh = level_set_mesh(GridField(d.grid, d.grid_bounds), level, resolution)
-    mesh.apply_translation(-np.asarray(d.com, dtype=float))
-    return mesh
 
 
 def export_scene(
@@ -126,7 +109,10 @@ def _bundle(root: ET.Element, path: Path) -> dict[Path, str]:
 
 def _add_geoms(spec: mujoco.MjSpec, body: DanoBody, friction, method, threshold, resolution, progress) -> None:
     """The visual mesh (no collision, group 1) and the convex pieces (collision, invisible group 3)."""
-    surface = dano_surface(body, resolution)
+    try:
+        surface = surface_mesh(body.dano, resolution)
+    except MeshError as e:
+        raise ExportError(f"{body.name}: {e}") from None
     pieces = convex_decomposition(surface, method=method, threshold=threshold, progress=progress)
     b = spec.body(body.name)
     meshes = [(f"{body.name}_surface", surface)] + [(f"{body.name}_hull{i}", p) for i, p in enumerate(pieces)]

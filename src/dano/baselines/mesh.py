@@ -1,7 +1,7 @@
 """The mesh path the paper argues against (Sec. VI): field -> level-set mesh -> convex pieces -> MuJoCo.
 
 Each step is a small function with its knobs exposed:
-`level_set_mesh` (marching cubes at a density level) -> `clean_mesh` (largest component, pymeshfix)
+`dano.surface.level_set_mesh` (marching cubes at a density level) -> `clean_mesh` (largest component, pymeshfix)
 -> `convex_decomposition` (CoACD or V-HACD, cached on disk) -> `mujoco_mesh_model` (MuJoCo C).
 `dano.baselines.compare` runs the same scenarios on these and on the DANO.
 """
@@ -20,49 +20,9 @@ from tqdm.auto import tqdm
 
 from dano.errors import MeshError
 from dano.extras import require
-from dano.fields import AbstractField
-from dano.fields.base import evaluate
-from dano.fields.grid import grid_nodes
 from dano.io import atomic_savez, load_npz
 
 CACHE = Path.home() / ".cache" / "dano" / "convex"
-
-
-def level_set_mesh(field: AbstractField, level: float, resolution: int = 100) -> trimesh.Trimesh:
-    """The surface {phi = level} by marching cubes (scikit-image) on a grid over the field's box.
-
-    The grid is padded with one layer of zeros, so a surface that reaches the box (a floater at
-    the domain's edge) still closes. Faces are wound outward (positive volume).
-
-    Args:
-        level: the density level, in the field's own units.
-        resolution: grid nodes along the box's longest side (voxels are cubes).
-
-    Raises:
-        MeshError: no surface at that level (it is above the field's maximum or not positive).
-    """
-    marching_cubes = require("skimage.measure", "marching cubes (the mesh path)").marching_cubes
-
-    if not level > 0:
-        raise MeshError(f"the level must be a positive density, got {level}")
-    if resolution < 8:
-        raise MeshError(f"resolution must be >= 8, got {resolution}")
-    lo, hi = (np.asarray(b, dtype=float) for b in field.bounds)
-    h = float(np.max(hi - lo)) / (resolution - 1)
-    shape = tuple(int(np.ceil((hi[i] - lo[i]) / h)) + 1 for i in range(3))
-    nodes = grid_nodes((tuple(lo), tuple(lo + h * (np.asarray(shape) - 1))), shape)  # type: ignore[arg-type]
-    values = np.pad(evaluate(field, nodes.reshape(-1, 3)).reshape(shape), 1)
-    if not values.max() > level:
-        raise MeshError(f"no surface at level {level:g}: the field's densities are at most {values.max():g}")
-    verts, faces, _, _ = marching_cubes(values, level=level, spacing=(h, h, h))
-    return outward(trimesh.Trimesh(verts + lo - h, faces, process=True))
-
-
-def outward(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
-    """The mesh with its faces wound outward (positive volume), inverted in place if they were not."""
-    if mesh.volume < 0:
-        mesh.invert()
-    return mesh
 
 
 def clean_mesh(mesh: trimesh.Trimesh, largest_component: bool = True, repair: bool = True) -> trimesh.Trimesh:

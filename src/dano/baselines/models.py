@@ -9,10 +9,11 @@ from typing import cast
 import numpy as np
 import trimesh
 
-from dano.baselines.mesh import CACHE, clean_mesh, decompose, level_set_mesh, outward
+from dano.baselines.mesh import CACHE, clean_mesh, decompose
 from dano.errors import DanoError
 from dano.extras import require
 from dano.fields import AbstractField
+from dano.surface import level_set_mesh, outward
 from dano.types import DANO
 
 

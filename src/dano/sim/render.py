@@ -1,12 +1,17 @@
 """Rendering rollouts to MP4/GIF with MuJoCo's own renderer, headless (EGL or OSMesa).
 
-DANOs have no MuJoCo geoms, so each frame adds their surface points as small spheres to the
-MuJoCo scene (a subsample, coloured per body). `make_renderer` picks the OpenGL backend when a renderer
+DANOs have no MuJoCo geoms. By default each is drawn as its surface (`dano.surface.surface_mesh`,
+marching cubes of its density grid, added to a copy of the scene's model as a visual mesh, as the
+paper's Fig. 8e draws them); `style="points"` draws its surface points as small spheres instead (a
+subsample, coloured per body), and a DANO with no density grid (a reference collider) is always
+drawn so. The camera frames everything that moves: the DANOs over the whole trajectory, and the
+moving primitives and robot links. `make_renderer` picks the OpenGL backend when a renderer
 is made, not at import: the user's `MUJOCO_GL` if set, MuJoCo's own choice where a display exists
 (or off Linux), else EGL and then OSMesa (headless Linux).
 """
 
 import contextlib
+import enum
 import os
 import platform
 from pathlib import Path
@@ -16,10 +21,20 @@ import mujoco
 import numpy as np
 from tqdm.auto import tqdm
 
+from dano import validate as V
 from dano.errors import DanoError
 from dano.io import atomic_write
 
 _COLOURS = np.array([[0.85, 0.55, 0.35, 1], [0.35, 0.6, 0.85, 1], [0.5, 0.8, 0.4, 1], [0.8, 0.4, 0.7, 1]])
+
+
+class Style(enum.StrEnum):
+    """How a DANO is drawn."""
+
+    surface = "surface"
+    """its surface mesh (marching cubes of its density grid)"""
+    points = "points"
+    """its surface points, as small spheres"""
 
 
 class RenderError(DanoError):
@@ -82,6 +97,7 @@ def render_video(
     fps: float = 30.0,
     max_points: int = 1500,
     progress: bool = True,
+    style: Style | str = Style.surface,
 ) -> Path:
     """Renders a trajectory to `path` (.mp4 via ffmpeg, or .gif), written atomically.
 
@@ -89,33 +105,21 @@ def render_video(
         sim: the `Simulation` that produced `traj`.
         traj: the `Trajectory`.
         fps: frames per second of the video; simulation frames are subsampled to match.
-        max_points: points drawn per DANO.
+        max_points: points drawn per DANO drawn as points.
+        style: `Style.surface` (default) or `Style.points` (module docstring).
     """
     path = Path(path)
     if path.suffix.lower() not in (".mp4", ".gif"):
         raise DanoError(f"video must be .mp4 or .gif, got {path.name}")
-    model = sim.model
-    # Software GL renders thousands of small spheres: coarse spheres and no shadows keep it ~20x faster.
-    model.vis.quality.numslices, model.vis.quality.numstacks = 8, 4
-    renderer = make_renderer(model, height, width, max_geom=10000)
-    data = mujoco.MjData(model)
     qpos = np.asarray(traj.qpos)
     every = max(1, int(round(1.0 / (fps * sim.scene.timestep))))
-    rng = np.random.default_rng(0)
-    clouds = []
-    for state in sim.world.danos:
-        pts = np.asarray(state.points).T
-        clouds.append(pts[rng.choice(len(pts), size=min(max_points, len(pts)), replace=False)])
-    camera = _camera(qpos, sim)
+    model, clouds = scene_model(sim, style, max_points)
+    renderer = make_renderer(model, height, width, max_geom=10000)
+    data = mujoco.MjData(model)
+    camera = frame_camera(model, qpos[::every], sim, width / height)
     frames = []
     for t in tqdm(range(0, len(qpos), every), desc="render", disable=not progress, unit="frame"):
-        data.qpos[:] = qpos[t]
-        mujoco.mj_forward(model, data)
-        renderer.update_scene(data, camera)
-        renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
-        for i, (a, pts) in enumerate(zip(sim.world.dano_qpos, clouds, strict=True)):
-            _add_points(renderer.scene, qpos[t, a : a + 3], qpos[t, a + 3 : a + 7], pts, _COLOURS[i % len(_COLOURS)])
-        frames.append(renderer.render().copy())
+        frames.append(draw_frame(renderer, model, data, qpos[t], camera, sim, clouds))
     renderer.close()
     with atomic_write(path, suffix=path.suffix) as tmp:
         if path.suffix.lower() == ".gif":
@@ -125,14 +129,88 @@ def render_video(
     return path
 
 
-def _camera(qpos: np.ndarray, sim) -> mujoco.MjvCamera:
-    centres = [qpos[:, a : a + 3] for a in sim.world.dano_qpos] or [np.zeros((1, 3))]
-    allc = np.concatenate(centres)
+def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500):
+    """The model to draw the simulation's scene with, and the points to draw per DANO (None for a
+    DANO drawn as its surface mesh, which the model then holds as a visual geom of its body)."""
+    from dano.sim.compile import scene_spec
+    from dano.surface import surface_mesh
+
+    style = V.option(style, "style", DanoError, Style)
+    rng = np.random.default_rng(0)
+    spec, clouds = None, []
+    for i, (body, state) in enumerate(zip(sim.scene.bodies, sim.world.danos, strict=True)):
+        if style is Style.surface and body.dano.grid is not None:
+            spec = spec or scene_spec(sim.scene)[0]
+            mesh = surface_mesh(body.dano)
+            name = f"{body.name}_surface"
+            spec.add_mesh(name=name, uservert=mesh.vertices.ravel().tolist(), userface=mesh.faces.ravel().tolist())
+            geom = spec.body(body.name).add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name)
+            geom.contype = geom.conaffinity = 0
+            geom.mass, geom.rgba = 0.0, _COLOURS[i % len(_COLOURS)].tolist()
+            clouds.append(None)
+            continue
+        pts = np.asarray(state.points).T
+        clouds.append(pts[rng.choice(len(pts), size=min(max_points, len(pts)), replace=False)])
+    model = sim.model if spec is None else spec.compile()
+    if model.nq != sim.model.nq:  # an invariant: visual geoms add no joints
+        raise AssertionError("the render model's joints differ from the simulation's")
+    # Software GL renders thousands of small spheres: coarse spheres and no shadows keep it ~20x faster.
+    model.vis.quality.numslices, model.vis.quality.numstacks = 8, 4
+    return model, clouds
+
+
+def draw_frame(renderer, model, data, qpos, camera, sim, clouds) -> np.ndarray:
+    """One picture of the state `qpos` (the renderer's pixels, or its segmentation when enabled),
+    with `model` and `clouds` from `scene_model`."""
+    data.qpos[:] = qpos
+    mujoco.mj_forward(model, data)
+    renderer.update_scene(data, camera)
+    renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+    for i, (a, pts) in enumerate(zip(sim.world.dano_qpos, clouds, strict=True)):
+        if pts is not None:
+            _add_points(renderer.scene, qpos[a : a + 3], qpos[a + 3 : a + 7], pts, _COLOURS[i % len(_COLOURS)])
+    return renderer.render().copy()
+
+
+def frame_camera(model: mujoco.MjModel, qpos: np.ndarray, sim, aspect: float = 4 / 3) -> mujoco.MjvCamera:
+    """A camera that keeps in view, over the frames `qpos` (T, nq), every DANO (a subsample of its
+    surface points) and every moving body's geoms (their bounding spheres: free or actuated
+    primitives, robot links), from 135° azimuth and 25° above, as close as the field of view allows
+    (`aspect` is the picture's width over its height)."""
+    data = mujoco.MjData(model)
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    danos = {model.body(b.name).id for b in sim.scene.bodies}
+    bodies = [model.geom_bodyid[g] for g in range(model.ngeom)]
+    moves = [b not in danos and (model.body_weldid[b] > 0 or model.body_mocapid[b] >= 0) for b in bodies]
+    moving = [g for g, m in enumerate(moves) if m]
+    hulls = [np.asarray(state.points).T[:: max(1, state.points.shape[1] // 200)] for state in sim.world.danos]
+    for q in qpos:
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        for a, pts in zip(sim.world.dano_qpos, hulls, strict=True):
+            R = np.zeros(9)
+            mujoco.mju_quat2Mat(R, q[a + 3 : a + 7] / np.linalg.norm(q[a + 3 : a + 7]))
+            world = pts @ R.reshape(3, 3).T + q[a : a + 3]
+            lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
+        for g in moving:
+            r = float(model.geom_rbound[g])
+            lo, hi = np.minimum(lo, data.geom_xpos[g] - r), np.maximum(hi, data.geom_xpos[g] + r)
+    if not np.all(np.isfinite(lo)):
+        lo, hi = np.full(3, -0.2), np.full(3, 0.2)
     cam = mujoco.MjvCamera()
-    cam.lookat[:] = allc.mean(axis=0)
-    size = max([float(np.max(np.ptp(np.asarray(s.points), axis=1))) for s in sim.world.danos] or [0.2])
-    cam.distance = 1.5 * float(np.max(np.ptp(allc, axis=0))) + 4.0 * size
+    cam.lookat[:] = 0.5 * (lo + hi)
     cam.azimuth, cam.elevation = 135.0, -25.0
+    # The box's corners seen from the camera's direction: its half-extents across the picture (right,
+    # up) set the distance that fits them in the field of view (5 % margin), half its depth
+    # added for its near side (a box's corners are far outside a body's silhouette).
+    az, el = np.radians(cam.azimuth), np.radians(cam.elevation)
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    right = np.array([np.sin(az), -np.cos(az), 0.0])
+    up = np.cross(right, forward)
+    corners = 0.5 * (hi - lo) * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)])
+    half = [float(np.max(np.abs(corners @ axis))) for axis in (right, up, forward)]
+    tan = np.tan(np.radians(0.5 * float(model.vis.global_.fovy)))
+    cam.distance = 0.5 * half[2] + 1.05 * max(half[1] / tan, half[0] / (tan * aspect))
     return cam
 
 
