@@ -34,3 +34,27 @@ def analytic_fields():
 def rel_err(a, b) -> float:
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     return float(np.linalg.norm(a - b) / np.linalg.norm(b))
+
+
+def browser_screenshot(page, out, size: tuple[int, int] = (1000, 1400)) -> tuple[np.ndarray, list[str]]:
+    """Opens `page` (a file) in headless Chromium (Debian's `chromium`) and returns its screenshot
+    (height, width, channels) and every line the page wrote to its console; skips where Chromium
+    is not installed (`.ci/run` installs it)."""
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    import imageio.v3 as iio
+    import pytest
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("headless Chromium not found (Debian: apt-get install chromium; .ci/run installs it)")
+    out, page = Path(out), Path(page).resolve()
+    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-sync",
+             "--disable-background-networking", "--disable-component-update", "--enable-logging=stderr", "--v=0",
+             f"--user-data-dir={out.parent / 'chromium-profile'}", f"--window-size={size[0]},{size[1]}",
+             f"--screenshot={out}", "--virtual-time-budget=3000"]  # fmt: skip
+    run = subprocess.run([chromium, *flags, page.as_uri()], capture_output=True, text=True, timeout=120)
+    assert out.is_file(), run.stderr[-2000:]
+    return iio.imread(out), [line for line in run.stderr.splitlines() if ":CONSOLE" in line]

@@ -84,6 +84,8 @@ def _add_simulate(sub) -> None:
     s.add_argument("scene", help="scene .toml (see README)")
     s.add_argument("-o", "--output", required=True, type=_output(), help="trajectory CSV: t,body,x,y,z,qw,qx,qy,qz")
     s.add_argument("--video", type=_output(*VIDEO), help="render to this .mp4 or .gif")
+    s.add_argument("--style", choices=["surface", "points"], default="surface",
+                   help="draw each DANO as its surface (default) or its surface points")  # fmt: skip
     s.add_argument("--steps", type=_int(1), help="frames to simulate (default: duration / timestep)")
     s.add_argument("--json", action="store_true", help="one JSON object (output, frames, bodies, video, profile)")
     s.add_argument("--profile", action="store_true",
@@ -171,7 +173,7 @@ def _simulate(args: argparse.Namespace) -> None:
     if args.video:
         from dano.sim.render import render_video
 
-        human.append(f"wrote {render_video(sim, traj, args.video, progress=not args.json)}")
+        human.append(f"wrote {render_video(sim, traj, args.video, progress=not args.json, style=args.style)}")
     if args.profile:
         import dataclasses
 

@@ -85,6 +85,8 @@ def _add_trajopt(sub) -> None:
     )
     t.add_argument("--max-iterations", type=_int(1), default=150)
     t.add_argument("--video", type=_output(*VIDEO), help="render the open-loop replay to this .mp4 or .gif")
+    t.add_argument("--style", choices=["surface", "points"], default="surface",
+                   help="draw the DANO as its surface (default) or its surface points")  # fmt: skip
     t.add_argument("--json", action="store_true",
                    help="one JSON object (final_error_m, iterations, seconds, max_violation, ...)")  # fmt: skip
     t.set_defaults(run=_trajopt)
@@ -180,7 +182,7 @@ def _trajopt(args: argparse.Namespace) -> None:
     options = dataclasses.replace(default_options(args.robot), max_iterations=args.max_iterations)
     result = solve_push(push, options, progress=not args.json)
     if args.video:
-        render_push(push, result, args.video, progress=not args.json)
+        render_push(push, result, args.video, progress=not args.json, style=args.style)
     if args.json:
         params = {"friction": args.friction, "goal": list(goal), "horizon": args.horizon, "dt": args.dt}
         adjustments = {"goal_world": push.goal_world.tolist()}  # --goal is relative to where the object rests

@@ -129,6 +129,24 @@ def render_video(
     return path
 
 
+def coverage(sim, traj, width: int = 640, height: int = 480, style: Style | str = Style.surface) -> dict[str, float]:
+    """The fraction of `render_video`'s last picture that each DANO covers (its surface drawn; from
+    MuJoCo's segmentation render), by body name: how well the camera frames the objects."""
+    model, clouds = scene_model(sim, style)
+    qpos = np.asarray(traj.qpos)
+    renderer = make_renderer(model, height, width, max_geom=10000)
+    renderer.enable_segmentation_rendering()
+    seg = draw_frame(renderer, model, mujoco.MjData(model), qpos[-1], frame_camera(model, qpos, sim, width / height),
+                     sim, clouds)  # fmt: skip
+    renderer.close()
+    geoms = np.where(seg[..., 1] == int(mujoco.mjtObj.mjOBJ_GEOM), seg[..., 0], -1)
+    return {
+        b.name: float(np.mean(geoms == model.geom(f"{b.name}_surface").id))
+        for b, c in zip(sim.scene.bodies, clouds, strict=True)
+        if c is None
+    }
+
+
 def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500):
     """The model to draw the simulation's scene with, and the points to draw per DANO (None for a
     DANO drawn as its surface mesh, which the model then holds as a visual geom of its body)."""

@@ -242,9 +242,12 @@ def solve_push(push: PushProblem, options: Options | None = None, progress: bool
     )  # fmt: skip
 
 
-def render_push(push: PushProblem, result: PushResult, path, frames_per_step: int = 4, progress: bool = True):
+def render_push(
+    push: PushProblem, result: PushResult, path, frames_per_step: int = 4, progress: bool = True, style: str = "surface"
+):
     """Renders the open-loop replay with `frames_per_step` video frames per control step (the same
-    substeps, regrouped: a control is held over its step), at the real-time frame rate."""
+    substeps, regrouped: a control is held over its step), at the real-time frame rate; `style` as
+    in `dano.sim.render.render_video`."""
     from dano.sim.render import render_video
 
     scene = push.sim.scene
@@ -257,4 +260,4 @@ def render_push(push: PushProblem, result: PushResult, path, frames_per_step: in
     sim = Simulation.from_scene(fine)
     ctrl = jnp.repeat(push.full_ctrl(jnp.asarray(result.solution.controls)), frames_per_step, axis=0)
     traj = sim.run(push.task.horizon * frames_per_step, ctrl=ctrl)
-    return render_video(sim, traj, path, fps=frames_per_step / push.task.dt, progress=progress)
+    return render_video(sim, traj, path, fps=frames_per_step / push.task.dt, progress=progress, style=style)
