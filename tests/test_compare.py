@@ -93,9 +93,11 @@ def test_cli_compare_on_an_analytic_box(tmp_path, capsys):
 
     plot = tmp_path / "rests.png"
     args = ["compare", "box:size=0.1,0.06,0.04", "--levels", "500", "--resolution", "30", "--points", "500"]
-    assert main([*args, "--json", "--plot", str(plot)]) == 0
+    assert main([*args, "--json", "--plot", str(plot), "--report", str(tmp_path / "r.html")]) == 0
     out = json.loads(capsys.readouterr().out)
     assert [r["model"] for r in out["rows"]] == ["level 500", "DANO"]
+    page = (tmp_path / "r.html").read_text()
+    assert "<td>level 500</td>" in page and page.count("data:image/png;base64,") == 1 and "dano compare box:" in page
     assert all(r["rest_tilt_deg"] < 2.0 for r in out["rows"])
     assert plot.stat().st_size > 10_000
     assert main(["compare", "bluesoap"]) == 2

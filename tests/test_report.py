@@ -48,3 +48,15 @@ def test_bad_reports_are_named_errors_and_write_nothing(tmp_path):
     with pytest.raises(ReportError, match="cannot embed a .txt file"):
         write_report(tmp_path / "report.html", "r", [Section("s", media=[tmp_path / "notes.txt"])])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.mp4", "notes.txt", "square.png"]
+
+
+def test_a_commands_picture_is_its_own_png_or_one_drawn_for_the_page_and_removed(tmp_path):
+    from dano.cli.reports import picture
+
+    picture_png, _ = _media(tmp_path)
+    drawn = []
+    with picture(str(picture_png), drawn.append) as png:
+        assert png == picture_png and drawn == []  # the command wrote a PNG: that one
+    with picture(str(tmp_path / "fit.pdf"), lambda p: iio.imwrite(p, np.zeros((4, 4, 3), np.uint8))) as png:
+        assert png.suffix == ".png" and png.is_file() and png.parent != tmp_path  # a PDF cannot be embedded
+    assert not png.exists()

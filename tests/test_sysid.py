@@ -130,6 +130,7 @@ def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path,
         "sysid", str(tmp_path / "scene.toml"), "--traj", str(tmp_path / "a.csv"),
         "--traj", str(tmp_path / "b.csv"), "--fit", "friction", "--scale", "0.01", "--gravity", "fit",
         "--fit-initial", "velocity", "--json", "--plot", str(tmp_path / "fit.png"),
+        "--report", str(tmp_path / "r.html"),
     ])  # fmt: skip
     assert code == 0
     out = json.loads(capsys.readouterr().out)
@@ -153,6 +154,9 @@ def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path,
     assert np.dot(adjusted["gravity"]["vector"], down) == pytest.approx(9.81, rel=1e-3)
     assert out["loss"][-1] < out["loss"][0]
     assert (tmp_path / "fit.png").stat().st_size > 10_000
+    page = (tmp_path / "r.html").read_text()  # the same estimate, its picture and the command line
+    assert f"{out['params']['friction']:.6g}" in page and page.count("data:image/png;base64,") == 1
+    assert "dano sysid " in page and "--fit-initial velocity" in page
 
 
 def test_cli_sysid_names_a_bad_trajectory_file(tmp_path, capsys, bar):

@@ -103,6 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:  # --help, --version (0) or a usage error (2, its one line already printed)
         return e.code if isinstance(e.code, int) else 2
     _renamed_notes(args.command, argv)
+    args.argv = argv  # the command line, for the reports that show how to reproduce them
     import jax  # after parsing: `dano --help` and usage errors need no JAX
 
     # Float64 throughout, as the tests run: identification needs it (in float32 the Gauss-Newton

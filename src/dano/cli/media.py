@@ -18,6 +18,7 @@ from dano.cli.arguments import (
     _parse_levels,
 )
 from dano.cli.configs import add_config, from_args
+from dano.cli.reports import add_report
 from dano.errors import DanoError
 from dano.vision.configs import FitConfig, GridModel, TrackConfig
 
@@ -181,6 +182,7 @@ def _add_compare(sub) -> None:
     c.add_argument("--seed", type=_int(0), default=0)
     c.add_argument("--plot", type=_output(*PLOT), help="PNG of every model at rest on the floor (the paper's Fig. 8)")
     c.add_argument("--json", action="store_true", help='one JSON object {"source", "truth", "rows": [...]}')
+    add_report(c, "the table of every model against the truth, the models at rest")
     c.set_defaults(run=_compare)
 
 
@@ -210,13 +212,29 @@ def _compare(args: argparse.Namespace) -> None:
         from dano.plotting import plot_rests
 
         plot_rests(result, args.plot, title=f"{args.source}: at rest after {scenarios.drop_s:g} s")
+    if args.report:
+        _compare_report(args, result, truth, scenarios)
     if args.json:
         print(json.dumps({"source": args.source, "truth": None if truth is None else truth.label, "rows": result.rows}))
     else:
         print(f"{args.source}: against {'no truth' if truth is None else truth.label}")
         print(C.format_table(result.rows))
-        if args.plot:
-            print(f"wrote {args.plot}")
+        for path in (args.plot, args.report):
+            if path:
+                print(f"wrote {path}")
+
+
+def _compare_report(args: argparse.Namespace, result, truth, scenarios) -> None:
+    from dano.cli.reports import picture, write_command_report
+    from dano.plotting import plot_rests
+    from dano.report import Section
+
+    header = list(result.rows[0]) if result.rows else []
+    rows = [header] + [["" if row[k] is None else row[k] for k in header] for row in result.rows]
+    text = f"{args.source} against {'no truth' if truth is None else truth.label}: the drop, the slide and the push."
+    title = f"{args.source}: at rest after {scenarios.drop_s:g} s"
+    with picture(args.plot, lambda path: plot_rests(result, path, title=title)) as png:
+        write_command_report(args, "dano compare", [Section("The mesh path against the DANO", text, rows, [png])])
 
 
 def _field_models(args: argparse.Namespace, knobs: dict):

@@ -22,6 +22,7 @@ from dano.cli.arguments import (
     _vector_part,
 )
 from dano.cli.configs import add_config, from_args
+from dano.cli.reports import add_report
 from dano.errors import DanoError
 from dano.sysid.configs import Interval, SysidConfig
 
@@ -55,6 +56,7 @@ def _add_sysid(sub) -> None:
     y.add_argument("--plot", type=_output(*PLOT),
                    help="PNG of observed vs fitted trajectories (with --masks: masks, simulated silhouettes and "
                    "their difference) and the loss")  # fmt: skip
+    add_report(y, "the estimates with their intervals, the fit's picture")
     y.add_argument("--init", help="initial guesses name=value,... (default: the scene's values)")
     y.add_argument("--bounds", help="bounds name=low:high,... (default: Table I ranges, widened)")
     add_config(
@@ -89,6 +91,7 @@ def _add_trajopt(sub) -> None:
                    help="draw the DANO as its surface (default) or its surface points")  # fmt: skip
     t.add_argument("--json", action="store_true",
                    help="one JSON object (final_error_m, iterations, seconds, max_violation, ...)")  # fmt: skip
+    add_report(t, "the solution's figures and the replay's video (with --video)")
     t.set_defaults(run=_trajopt)
 
 
@@ -141,6 +144,8 @@ def _sysid(args: argparse.Namespace) -> None:
         )  # fmt: skip
         if args.plot:
             plot_masks(problem, result, args.plot)
+    if args.report:
+        _sysid_report(args, problem, result)
     if args.json:
         print(json.dumps(result.summary()))
         return
@@ -163,8 +168,26 @@ def _sysid(args: argparse.Namespace) -> None:
         print(f"adjusted {kind}: {json.dumps(change)}")
     for flag in result.flags:
         print(f"note: {flag}")
-    if args.plot:
-        print(f"wrote {args.plot}")
+    for path in (args.plot, args.report):
+        if path:
+            print(f"wrote {path}")
+
+
+def _sysid_report(args: argparse.Namespace, problem, result) -> None:
+    from dano.cli.reports import picture, write_command_report
+    from dano.plotting import plot_identification, plot_masks
+    from dano.report import Section
+
+    rows = [("parameter", "estimate", "standard error", f"{result.level:.0%} interval ({result.interval})")]
+    for name, value in result.params.items():
+        low, high = result.intervals[name]
+        rows.append((name, f"{value:.6g}", f"{result.stderr[name]:.3g}", f"[{low:.6g}, {high:.6g}]"))
+    text = (f"Loss {result.loss[0]:.4g} to {result.loss[-1]:.4g} in {result.iterations} iterations "
+            f"({result.message}), {result.seconds:.2f} s; {problem.n_windows} window(s) of {problem.n_frames} "
+            f"frames. " + " ".join(f"Note: {flag}." for flag in result.flags))  # fmt: skip
+    draw = plot_identification if args.masks is None else plot_masks
+    with picture(args.plot, lambda path: draw(problem, result, path)) as png:
+        write_command_report(args, "dano sysid", [Section("Identification", text, rows, [png])])
 
 
 def _trajopt(args: argparse.Namespace) -> None:
@@ -183,6 +206,8 @@ def _trajopt(args: argparse.Namespace) -> None:
     result = solve_push(push, options, progress=not args.json)
     if args.video:
         render_push(push, result, args.video, progress=not args.json, style=args.style)
+    if args.report:
+        _trajopt_report(args, push, result)
     if args.json:
         params = {"friction": args.friction, "goal": list(goal), "horizon": args.horizon, "dt": args.dt}
         adjustments = {"goal_world": push.goal_world.tolist()}  # --goal is relative to where the object rests
@@ -194,8 +219,24 @@ def _trajopt(args: argparse.Namespace) -> None:
           f"max constraint violation {s.max_violation:.2e}, final object error {result.final_error_m * 1e3:.2f} mm, "
           f"end effector {result.ee_error_m * 1e3:.1f} mm from its goal, {s.seconds:.1f} s (with JIT); "
           f"open-loop replay ends {result.replay_gap_m:.1e} m from the optimiser")  # fmt: skip
-    if args.video:
-        print(f"wrote {args.video}")
+    for path in (args.video, args.report):
+        if path:
+            print(f"wrote {path}")
+
+
+def _trajopt_report(args: argparse.Namespace, push, result) -> None:
+    from dano.cli.reports import write_command_report
+    from dano.report import Section
+
+    s = result.solution
+    rows = [("goal [m]", "converged", "iterations", "cost", "max violation", "object error [mm]",
+             "end effector error [mm]", "replay gap [m]", "seconds (with JIT)"),
+            (push.goal_world.round(4).tolist(), s.converged, s.iterations, f"{s.cost:.4g}", f"{s.max_violation:.2e}",
+             f"{result.final_error_m * 1e3:.2f}", f"{result.ee_error_m * 1e3:.1f}", f"{result.replay_gap_m:.1e}",
+             f"{s.seconds:.1f}")]  # fmt: skip
+    media = [args.video] if args.video and args.video.lower().endswith(".mp4") else []
+    text = f"The {args.robot} pushes the object: {s.message}. The video is the open-loop replay of the controls."
+    write_command_report(args, "dano trajopt push", [Section("Trajectory optimisation", text, rows, media)])
 
 
 def _default_bunny():
