@@ -17,7 +17,7 @@ LAYERS = (
     ("real-to-sim, sim-to-robot", ("sysid", "trajopt")),
     ("pixels", ("vision",)),
     ("the mesh path", ("baselines",)),
-    ("front ends", ("plotting", "report", "demo", "cli")),
+    ("front ends", ("plotting", "report", "viewer", "demo", "cli")),
 )
 """Bottom up. `dano/__init__.py`, the lazy public facade, may name anything."""
 

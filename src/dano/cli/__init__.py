@@ -14,7 +14,7 @@ from pathlib import Path
 
 from dano.cli.arguments import UsageError, _Parser
 from dano.cli.media import _add_compare, _add_fit_field, _add_render_views, _add_track
-from dano.cli.objects import _add_build, _add_demo, _add_export, _add_info, _add_simulate, info_dict
+from dano.cli.objects import _add_build, _add_demo, _add_export, _add_info, _add_simulate, _add_view, info_dict
 from dano.cli.solvers import _add_sysid, _add_trajopt
 from dano.errors import DanoError
 
@@ -28,7 +28,7 @@ def parser() -> argparse.ArgumentParser:
     p = _Parser(prog="dano", description="Dynamics-Augmented Neural Objects")
     p.add_argument("--version", action="version", version=f"dano {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    for add in (_add_build, _add_info, _add_simulate, _add_export, _add_sysid, _add_trajopt, _add_compare,
+    for add in (_add_build, _add_info, _add_simulate, _add_export, _add_view, _add_sysid, _add_trajopt, _add_compare,
                 _add_render_views, _add_fit_field, _add_track, _add_demo):  # fmt: skip
         add(sub)
     return p

@@ -3,6 +3,7 @@
 import argparse
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -97,7 +98,8 @@ def _add_export(sub) -> None:
     e = sub.add_parser("export", help="write a scene TOML file as an MJCF for plain MuJoCo (DANOs as meshes)")
     e.add_argument("scene", help="scene .toml (see README)")
     e.add_argument("-o", "--output", required=True, type=_output(".xml"),
-                   help="the MJCF file (meshes inline): each DANO a body with its mass and full inertia, its "
+                   help="the MJCF file (the DANOs' meshes inline, a robot's copied beside it): each DANO a body with "
+                   "its mass and full inertia, its "
                    "surface as a visual mesh and its convex decomposition as collision geoms (the mesh path's "
                    "approximation of its contact)")  # fmt: skip
     e.add_argument("--method", choices=["coacd", "vhacd"], default="coacd", help="convex decomposition (default coacd)")
@@ -120,6 +122,39 @@ def _export(args: argparse.Namespace) -> None:
     summary = {"output": str(path), "bodies": [b.name for b in scene.bodies], "bytes": path.stat().st_size}
     human = f"wrote {path}: {len(scene.bodies)} DANO(s) as meshes, {summary['bytes']} bytes (plain MuJoCo loads it)"
     print(json.dumps(summary) if args.json else human)
+
+
+def _add_view(sub) -> None:
+    v = sub.add_parser("view", help="an interactive 3D view in the browser: one HTML page (WebGL) that opens from disk")
+    v.add_argument("source", help="a .dano.npz (the object) or a scene .toml (its DANOs where they start)")
+    v.add_argument("-o", "--output", required=True, type=_output(".html"), help="the page, .html")
+    v.add_argument("--trajectory", help="with a scene: a `dano simulate` CSV of it, played on a timeline")
+    v.add_argument("--points", type=_int(1), default=3000, help="surface points shown per DANO (default 3000)")
+    v.add_argument("--resolution", type=_int(8), default=64,
+                   help="marching-cubes nodes along the longest side of each DANO's grid box (default 64)")  # fmt: skip
+    v.add_argument("--json", action="store_true", help="one JSON object (output, bodies, frames, bytes)")
+    v.set_defaults(run=_view)
+
+
+def _view(args: argparse.Namespace) -> None:
+    from dano.io import load_dano
+    from dano.viewer import ViewerError, view_scene, write_view
+
+    knobs = {"max_points": args.points, "resolution": args.resolution}
+    if args.source.lower().endswith(".toml"):
+        from dano.sim import load_scene
+
+        scene = load_scene(args.source)
+        path = view_scene(args.output, scene, args.trajectory, title=Path(args.source).name, **knobs)
+        bodies = [b.name for b in scene.bodies]
+    else:
+        if args.trajectory is not None:
+            raise ViewerError("--trajectory needs the scene it was simulated in: dano view SCENE.toml --trajectory CSV")
+        name = Path(args.source).name.removesuffix(".npz").removesuffix(".dano")
+        path = write_view(args.output, {name: load_dano(args.source)}, title=Path(args.source).name, **knobs)
+        bodies = [name]
+    summary = {"output": str(path), "bodies": bodies, "bytes": path.stat().st_size}
+    print(json.dumps(summary) if args.json else f"wrote {path}: open it in a browser (drag to orbit, scroll to zoom)")
 
 
 def info_dict(dano) -> dict:
