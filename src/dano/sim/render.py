@@ -193,43 +193,50 @@ def draw_frame(renderer, model, data, qpos, camera, sim, clouds) -> np.ndarray:
 def frame_camera(model: mujoco.MjModel, qpos: np.ndarray, sim, aspect: float = 4 / 3) -> mujoco.MjvCamera:
     """A camera that keeps in view, over the frames `qpos` (T, nq), every DANO (a subsample of its
     surface points) and every moving body's geoms (their bounding spheres: free or actuated
-    primitives, robot links), from 135° azimuth and 25° above, as close as the field of view allows
-    (`aspect` is the picture's width over its height)."""
+    primitives, robot links), from 135° azimuth and 25° above, looking at the middle of their box,
+    as close as the pinhole's field of view allows with an 8 % margin (`aspect`: the picture's width
+    over its height)."""
+    centres, radii = _extent(model, qpos, sim)
+    lo, hi = (centres - radii[:, None]).min(axis=0), (centres + radii[:, None]).max(axis=0)
+    cam = mujoco.MjvCamera()
+    cam.lookat[:] = 0.5 * (lo + hi)
+    cam.azimuth, cam.elevation = 135.0, -25.0
+    az, el = np.radians(cam.azimuth), np.radians(cam.elevation)
+    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])  # MuJoCo's free camera
+    right = np.array([np.sin(az), -np.cos(az), 0.0])
+    up = np.cross(right, forward)
+    # The camera sits at lookat - distance * forward; a point p (radius r) is in the picture where
+    # |(p - lookat) . right| + r <= tan_h (distance + (p - lookat) . forward), and likewise up.
+    tan_v = np.tan(np.radians(0.5 * float(model.vis.global_.fovy)))
+    rel = centres - cam.lookat
+    across = np.maximum((np.abs(rel @ right) + radii) / (tan_v * aspect), (np.abs(rel @ up) + radii) / tan_v)
+    cam.distance = float(np.max(1.08 * across - rel @ forward + radii))
+    return cam
+
+
+def _extent(model: mujoco.MjModel, qpos: np.ndarray, sim) -> tuple[np.ndarray, np.ndarray]:
+    """What the camera must keep in view over the frames: points (n, 3) and their radii (n,), from
+    every DANO's surface points (up to 1000 each per frame) and every moving geom's bounding sphere."""
     data = mujoco.MjData(model)
-    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     danos = {model.body(b.name).id for b in sim.scene.bodies}
     bodies = [model.geom_bodyid[g] for g in range(model.ngeom)]
     moves = [b not in danos and (model.body_weldid[b] > 0 or model.body_mocapid[b] >= 0) for b in bodies]
     moving = [g for g, m in enumerate(moves) if m]
-    hulls = [np.asarray(state.points).T[:: max(1, state.points.shape[1] // 200)] for state in sim.world.danos]
+    hulls = [np.asarray(state.points).T[:: max(1, state.points.shape[1] // 1000)] for state in sim.world.danos]
+    centres, radii = [np.zeros((0, 3))], [np.zeros(0)]
     for q in qpos:
         data.qpos[:] = q
         mujoco.mj_kinematics(model, data)
         for a, pts in zip(sim.world.dano_qpos, hulls, strict=True):
             R = np.zeros(9)
             mujoco.mju_quat2Mat(R, q[a + 3 : a + 7] / np.linalg.norm(q[a + 3 : a + 7]))
-            world = pts @ R.reshape(3, 3).T + q[a : a + 3]
-            lo, hi = np.minimum(lo, world.min(axis=0)), np.maximum(hi, world.max(axis=0))
-        for g in moving:
-            r = float(model.geom_rbound[g])
-            lo, hi = np.minimum(lo, data.geom_xpos[g] - r), np.maximum(hi, data.geom_xpos[g] + r)
-    if not np.all(np.isfinite(lo)):
-        lo, hi = np.full(3, -0.2), np.full(3, 0.2)
-    cam = mujoco.MjvCamera()
-    cam.lookat[:] = 0.5 * (lo + hi)
-    cam.azimuth, cam.elevation = 135.0, -25.0
-    # The box's corners seen from the camera's direction: its half-extents across the picture (right,
-    # up) set the distance that fits them in the field of view (5 % margin), half its depth
-    # added for its near side (a box's corners are far outside a body's silhouette).
-    az, el = np.radians(cam.azimuth), np.radians(cam.elevation)
-    forward = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    right = np.array([np.sin(az), -np.cos(az), 0.0])
-    up = np.cross(right, forward)
-    corners = 0.5 * (hi - lo) * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)])
-    half = [float(np.max(np.abs(corners @ axis))) for axis in (right, up, forward)]
-    tan = np.tan(np.radians(0.5 * float(model.vis.global_.fovy)))
-    cam.distance = 0.5 * half[2] + 1.05 * max(half[1] / tan, half[0] / (tan * aspect))
-    return cam
+            centres.append(pts @ R.reshape(3, 3).T + q[a : a + 3])
+            radii.append(np.zeros(len(pts)))
+        centres.append(data.geom_xpos[moving])
+        radii.append(model.geom_rbound[moving])
+    if sum(len(r) for r in radii) == 0:  # nothing moves and no DANO: the origin's neighbourhood
+        return np.zeros((1, 3)), np.array([0.2])
+    return np.concatenate(centres), np.concatenate(radii)
 
 
 def _add_points(scene: mujoco.MjvScene, x: np.ndarray, quat: np.ndarray, pts: np.ndarray, rgba: np.ndarray) -> None:
