@@ -7,9 +7,12 @@ import shlex
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from dano.cli.arguments import _output
-from dano.report import Section, write_report
+
+if TYPE_CHECKING:  # `dano --help` imports this module: it loads nothing heavy (dano.report's I/O loads JAX)
+    from dano.report import Section
 
 
 def add_report(parser: argparse.ArgumentParser, what: str) -> None:
@@ -29,6 +32,8 @@ def picture(written: str | None, draw: Callable[[Path], object]) -> Iterator[Pat
         yield path
 
 
-def write_command_report(args: argparse.Namespace, title: str, sections: Sequence[Section]) -> Path:
+def write_command_report(args: argparse.Namespace, title: str, sections: "Sequence[Section]") -> Path:
+    from dano.report import Section, write_report
+
     command = shlex.join(["dano", *args.argv])
     return write_report(args.report, title, [*sections, Section("Reproduce", "Written by:", command=command)])
