@@ -134,3 +134,20 @@ def test_a_dano_rests_on_the_worlds_floor_plane_and_a_scene_file_names_its_world
     traj = sim.run()
     a = sim.world.dano_qpos[0]
     assert float(traj.qpos[-1, a + 2]) == pytest.approx(0.015, abs=1e-3)  # on the world's plane (DANO contact)
+
+
+@pytest.mark.slow
+def test_friction_is_identified_from_a_slide_on_the_worlds_table(soap, tmp_path):
+    from dano.contact import ContactParams
+    from dano.sysid import Recording, identify, make_problem
+    from dano.sysid.experiments import slide_track
+
+    body = DanoBody("object", soap, pos=(-0.25, 0.0, TOP + 0.015), vel=(1.0, 0.0, 0.0))
+    truth = Scene(
+        mjcf=_world(tmp_path), ground_height=None, contact=ContactParams(sliding_friction=0.4), bodies=(body,)
+    )
+    track = slide_track(truth, fps=120.0, n_frames=25, lead=2)
+    guess = dataclasses.replace(truth, contact=ContactParams(sliding_friction=0.2))
+    problem = make_problem(guess, [Recording({"object": track})], ["friction"], initial="velocity")
+    result = identify(problem, init={"sliding_friction": 0.2})
+    assert result.converged and result.params["sliding_friction"] == pytest.approx(0.4, rel=1e-3)
