@@ -12,7 +12,15 @@ from jaxtyping import Array
 
 from dano.contact import ContactParams, active
 from dano.contact.pairs import ForceMode
-from dano.sim.robots import check_servo_damping, link_geom, prepare_robot, robot_geoms, robot_spec
+from dano.sim.robots import (
+    check_servo_damping,
+    link_geom,
+    prepare_robot,
+    robot_geoms,
+    robot_spec,
+    world_geoms,
+    world_spec,
+)
 from dano.sim.scene import DanoBody, Integrator, Primitive, Scene, SceneError
 from dano.sim.world import MOVING, DanoState, Params, PrimGeom, World, pair_name, pairs
 
@@ -172,10 +180,36 @@ def scene_spec(scene: Scene) -> tuple[mujoco.MjSpec, list[str]]:
     """The scene as an uncompiled MuJoCo spec, and the robot's bodies: its options, ground,
     primitives and robot, each DANO a free body with its mass in its principal frame and no geom
     (its contact is dano's; its moments are written after compiling, `_set_moments`)."""
+    if scene.mjcf is not None:
+        spec = world_spec(scene.mjcf)
+        keys = [(k.name, list(k.qpos), list(k.qvel), list(k.act), list(k.ctrl), k.time) for k in spec.keys]
+        for k in list(spec.keys):
+            spec.delete(k)
+        _add_scene(spec, scene)
+        _keep_keys(spec, keys)
+        return spec, []
     spec = mujoco.MjSpec() if scene.robot is None else robot_spec(scene.robot)
     robot_bodies = prepare_robot(spec, scene.robot) if scene.robot is not None else []
     _add_scene(spec, scene)
     return spec, robot_bodies
+
+
+def _keep_keys(spec: mujoco.MjSpec, keys: list) -> None:
+    """An MJCF world's keyframes, each extended by the scene's own bodies at their start (the
+    DANOs' and primitives' joints come after the world's, at their `qpos0`)."""
+    if not keys:
+        return
+    try:
+        model = spec.compile()
+    except ValueError as e:
+        raise SceneError(f"MuJoCo cannot compile the scene: {' '.join(str(e).split())}") from None
+    for name, qpos, qvel, act, ctrl, time in keys:
+        key = spec.add_key(name=name, time=time)
+        key.qpos = (qpos + model.qpos0[len(qpos) :].tolist()) if qpos else model.qpos0.tolist()
+        key.qvel = (qvel + [0.0] * (model.nv - len(qvel))) if qvel else [0.0] * model.nv
+        key.ctrl = (ctrl + [0.0] * (model.nu - len(ctrl))) if ctrl else [0.0] * model.nu
+        if act:
+            key.act = act
 
 
 def _check_dano_pairs(scene: Scene) -> None:
@@ -271,7 +305,12 @@ def _world(scene: Scene, model: mujoco.MjModel, robot_bodies: list[str]) -> Worl
         unknown = sorted(set(scene.robot.contact_bodies) - set(robot_bodies))
         if unknown:
             raise SceneError(f"contact_bodies {unknown} are not bodies of the robot (it has {robot_bodies})")
-    links = tuple(link_geom(model, g) for g in robot_geoms(model, robot_bodies, scene.robot))
+    if scene.mjcf is not None:
+        scene_bodies = {model.body(b.name).id for b in scene.bodies} | {model.body(p.name).id for p in scene.primitives}
+        geoms = world_geoms(model, scene_bodies)
+    else:
+        geoms = robot_geoms(model, robot_bodies, scene.robot)
+    links = tuple(link_geom(model, g) for g in geoms)
     free = [_joint(model, b.name) for b in scene.bodies]
     return World(
         danos=tuple(_dano_state(scene, b) for b in scene.bodies),

@@ -40,6 +40,24 @@ def robot_spec(robot: Robot) -> mujoco.MjSpec:
     return _parse_robot(path, lambda: mujoco.MjSpec.from_file(str(path)))
 
 
+def world_spec(path: str) -> mujoco.MjSpec:
+    """Loads an MJCF world with MuJoCo's own compiler (`Scene.mjcf`), as it is."""
+    if not Path(path).is_file():
+        raise SceneError(f"MJCF world {path} not found")
+    try:
+        return mujoco.MjSpec.from_file(str(path))
+    except ValueError as e:
+        raise SceneError(f"MJCF world {path}: MuJoCo cannot load it: {' '.join(str(e).split())}") from None
+
+
+def world_geoms(model: mujoco.MjModel, skip_bodies: set[int]) -> list[int]:
+    """An MJCF world's colliding geoms (`Scene.mjcf`): every geom with a contact type or affinity,
+    but the scene's own ground and the geoms of `skip_bodies` (the DANOs', the primitives')."""
+    ground = model.geom("ground").id if "ground" in [model.geom(g).name for g in range(model.ngeom)] else -1
+    return [g for g in range(model.ngeom) if g != ground and model.geom_bodyid[g] not in skip_bodies
+            and (model.geom_contype[g] or model.geom_conaffinity[g])]  # fmt: skip
+
+
 def _parse_robot(path, parse) -> mujoco.MjSpec:
     try:
         return parse()
@@ -104,6 +122,7 @@ def robot_geoms(model: mujoco.MjModel, bodies: list[str], robot: Robot | None) -
 
 
 _LINK_KINDS = {
+    mujoco.mjtGeom.mjGEOM_PLANE: "mesh",  # one half-space
     mujoco.mjtGeom.mjGEOM_BOX: "box",
     mujoco.mjtGeom.mjGEOM_SPHERE: "sphere",
     mujoco.mjtGeom.mjGEOM_CAPSULE: "capsule",
@@ -118,9 +137,14 @@ def link_geom(model: mujoco.MjModel, g: int) -> LinkGeom:
     body = int(model.geom_bodyid[g])
     kind = _LINK_KINDS.get(mujoco.mjtGeom(model.geom_type[g]))
     if kind is None:
-        raise SceneError(f"robot geom {g} of type {mujoco.mjtGeom(model.geom_type[g]).name} is not supported")
+        name, kind_name = model.geom(g).name or f"number {g}", mujoco.mjtGeom(model.geom_type[g]).name
+        raise SceneError(f"geom {name} of type {kind_name} cannot touch DANOs (box, sphere, capsule, convex mesh "
+                         "and plane can): give it contype=0 conaffinity=0")  # fmt: skip
     size = tuple(float(v) for v in model.geom_size[g])
     normals = offsets = None
+    if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE:  # z <= 0 in its frame; no broad phase
+        return LinkGeom(g, body, int(model.body_rootid[body]), "mesh", size, 0.0, jnp.array([[0.0, 0.0, 1.0]]),
+                        jnp.zeros(1))  # fmt: skip
     if kind == "mesh":
         m = model.geom_dataid[g]
         vert = model.mesh_vert[model.mesh_vertadr[m] : model.mesh_vertadr[m] + model.mesh_vertnum[m]]

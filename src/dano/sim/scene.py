@@ -238,6 +238,12 @@ class Scene:
             (`dano.contact.active`): None (default) from each DANO's geometry (the most points
             near a supporting plane, `dano.contact.active.budget`); a step whose pairs need more
             is solved over all points, exactly, and counted (`Trajectory.fallbacks`).
+        mjcf: an MJCF world to put the DANOs in (a file): its bodies, joints, actuators (driven by
+            `ctrl`, before the actuated primitives' motors), keyframes and options are kept, and
+            MuJoCo's own contacts among its geoms; every colliding geom of it (box, sphere,
+            capsule, convex mesh, plane) touches the DANOs through the DANO contact model. The
+            scene's own ground is added beside it unless `ground_height` is None. A robot goes
+            into the world's file (`robot` and `mjcf` together are refused).
     """
 
     timestep: Number = 0.002
@@ -254,6 +260,7 @@ class Scene:
     robot: Robot | None = None
     integrator: Integrator | str = Integrator.implicit
     contact_budget: int | None = None
+    mjcf: str | None = None
 
     def __post_init__(self):
         _set(self, "integrator", V.option(self.integrator, "integrator", SceneError, Integrator))
@@ -291,6 +298,10 @@ class Scene:
             raise SceneError(f"robot must be a Robot (dano.sim.Robot, dano.assets.panda()), got {type(self.robot)}")
         if self.contact_budget is not None:
             _set(self, "contact_budget", V.integer(self.contact_budget, "contact_budget", SceneError, low=1))
+        if self.mjcf is not None:
+            _set(self, "mjcf", V.text(str(self.mjcf), "mjcf", SceneError))
+            if self.robot is not None:
+                raise SceneError("a scene takes a robot or an MJCF world, not both: put the robot in the world's file")
 
     @property
     def step_size(self) -> float:

@@ -46,6 +46,7 @@ _SCHEMA = {
         "mass": _positive, "collide": lambda v, n: V.boolean(v, n, SceneError), **_POSE,
     },
     "contact": {f.name: _num() for f in dataclasses.fields(ContactParams)},
+    "world": {"mjcf": _name},
 }  # fmt: skip
 """Each TOML table's keys and their checks (the same `dano.validate` checks the classes run)."""
 _SCHEMA["pair"] = {"a": _name, "b": _name, **_SCHEMA["contact"]}
@@ -84,9 +85,10 @@ def load_scene(path) -> Scene:
         raise SceneError(f"{path}: not a text file") from None
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML ({e})") from None
-    unknown = sorted(set(doc) - {"sim", "ground", "body", "primitive", "contact", "pair"})
+    unknown = sorted(set(doc) - {"sim", "ground", "body", "primitive", "contact", "pair", "world"})
     if unknown:
-        raise SceneError(f"{path}: unknown table(s) {unknown}; allowed: body, contact, ground, pair, primitive, sim")
+        allowed = "body, contact, ground, pair, primitive, sim, world"
+        raise SceneError(f"{path}: unknown table(s) {unknown}; allowed: {allowed}")
     sim = _read(doc.get("sim", {}), "sim", "[sim]", path)
     values = _read(doc.get("contact", {}), "contact", "[contact]", path)
     contact = _located(path, "[contact]", lambda: dataclasses.replace(ContactParams(), **values))
@@ -115,6 +117,9 @@ def load_scene(path) -> Scene:
         raise SceneError(f"{path}: no [[body]]: a scene needs at least one DANO")
     kw: dict[str, Any] = {**sim, "bodies": tuple(bodies), "primitives": tuple(prims), "contact": contact,
                           "pair_contact": tuple(pair_contact)}  # fmt: skip
+    if "world" in doc:
+        world = _read(doc["world"], "world", "[world]", path, required=("mjcf",))
+        kw["mjcf"] = str(path.parent / world["mjcf"])  # relative to the scene's file
     if "ground" in doc:
         ground = _read(doc["ground"], "ground", "[ground]", path)
         defaults = {f.name: f.default for f in dataclasses.fields(Scene)}

@@ -1,0 +1,153 @@
+"""DANOs in the user's own MJCF world (`Scene.mjcf`): the world's bodies, joints, actuators and
+contacts kept; its geoms touch the DANOs through the DANO contact model."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from dano import build_dano
+from dano.fields import BoxField
+from dano.sim import DanoBody, Robot, Scene
+from dano.sim.run import Simulation
+from dano.sim.scene import SceneError
+from dano.sim.step import rollout
+from helpers import partial_differences
+
+TOP = 0.22  # the table's top
+WORLD = """<mujoco>
+  <worldbody>
+    <geom name="floor" type="plane" size="2 2 0.1"/>
+    <body name="table" pos="0 0 0.2"><geom name="top" type="box" size="0.4 0.3 0.02"/></body>
+    <body name="shelf" pos="0 0.5 0.4"><geom name="board" type="box" size="0.3 0.1 0.01"/></body>
+    <body name="lid" pos="-0.3 -0.45 0.3">
+      <joint name="hinge" type="hinge" axis="1 0 0" damping="0.05"/>
+      <geom name="lid" type="box" size="0.1 0.05 0.005" pos="0 0.05 0" mass="0.1"/>
+    </body>
+    <body name="crate" pos="0.15 0 0.25">
+      <freejoint/><geom name="crate" type="box" size="0.03 0.03 0.03" mass="0.05"/>
+    </body>
+  </worldbody>
+  <actuator><position name="lid_motor" joint="hinge" kp="2" kv="0.1"/></actuator>
+  KEYFRAME
+</mujoco>"""
+
+
+@pytest.fixture(scope="module")
+def soap():
+    return build_dano(BoxField(size=(0.06, 0.04, 0.03)), mass=0.1, n_points=300)
+
+
+def _world(tmp_path, keyframe: str = "") -> str:
+    (tmp_path / "world.xml").write_text(WORLD.replace("KEYFRAME", keyframe))
+    return str(tmp_path / "world.xml")
+
+
+def test_a_dano_slides_on_the_worlds_table_into_its_free_crate_while_the_lid_follows_its_motor(soap, tmp_path):
+    # The soap, dropped 2 cm onto the table at 1.5 m/s, slides 0.23 m (mu = 0.5) into the crate. The
+    # crate sits on the table by MuJoCo's own contact; the soap touches the table, the crate and the
+    # floor through the DANO model; the lid's position servo (the world's actuator) follows ctrl.
+    start = (-0.05, 0.0, TOP + 0.015 + 0.02)
+    scene = Scene(mjcf=_world(tmp_path), ground_height=None, duration=1.0,
+                  bodies=(DanoBody("soap", soap, pos=start, vel=(1.5, 0.0, 0.0)),))  # fmt: skip
+    sim = Simulation.from_scene(scene)
+    assert sim.world.link_names == ("world", "table", "shelf", "lid", "crate") and sim.model.nu == 1
+    traj = sim.run(scene.n_steps, ctrl=jnp.full((scene.n_steps, 1), 0.8))
+    q, m = np.asarray(traj.qpos), sim.model
+    a = sim.world.dano_qpos[0]
+    crate = int(m.jnt_qposadr[m.body("crate").jntadr[0]])
+    assert q[-1, crate] > 0.15 + 0.005  # pushed along +x by the soap
+    assert q[-1, crate + 2] == pytest.approx(TOP + 0.03, abs=2e-3)  # still on the table (MuJoCo's contact)
+    assert q[-1, a + 2] == pytest.approx(TOP + 0.015, abs=2e-3)  # the soap rests on the table (DANO contact)
+    assert np.abs(np.asarray(traj.qvel[-1, sim.world.dano_qvel[0] : sim.world.dano_qvel[0] + 6])).max() < 1e-2
+    # The lid: 0.1 kg, its centre 5 cm out: gravity holds it below the target by m g l cos(q) / kp.
+    hinge = float(q[-1, m.jnt_qposadr[m.joint("hinge").id]])
+    assert hinge == pytest.approx(0.8 - 0.1 * 9.81 * 0.05 * np.cos(0.8) / 2.0, abs=0.01)
+
+
+def test_gradients_through_a_world_rollout_match_central_differences(soap, tmp_path):
+    """d(where the soap and the crate end)/d(friction, initial speed), 150 frames: the soap's
+    friction on the table and its hit on the crate, against central differences in float64."""
+    start = (-0.02, 0.0, TOP + 0.015)
+    scene = Scene(mjcf=_world(tmp_path), ground_height=None, bodies=(DanoBody("soap", soap, pos=start),))
+    sim = Simulation.from_scene(scene)
+    m = sim.model
+    crate = int(m.jnt_qposadr[m.body("crate").jntadr[0]])
+    v = sim.world.dano_qvel[0]
+
+    def final(theta):
+        mu, vx = theta
+        contact = tuple(dataclasses.replace(c, sliding_friction=mu) for c in sim.params.contact)
+        d = sim.data.replace(qvel=sim.data.qvel.at[v].set(vx))
+        ctrl = jnp.zeros((150, 1))
+        q = rollout(sim.world, dataclasses.replace(sim.params, contact=contact), sim.mjx_model, d, 150, ctrl).qpos[-1]
+        return jnp.stack([q[sim.world.dano_qpos[0]], q[crate]])
+
+    theta = (0.5, 1.4)
+    f = jax.jit(final)
+    fd = np.stack(partial_differences(lambda *t: f(jnp.asarray(t)), theta, rel_step=1e-5), axis=1)
+    J = np.asarray(jax.jit(jax.jacfwd(final))(jnp.asarray(theta)))
+    np.testing.assert_allclose(J, fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max())
+    assert np.abs(fd[1]).max() > 1e-3  # the crate's end depends on the soap: the hit is in the gradient
+
+
+def test_a_worlds_keyframes_are_kept_and_extended_by_the_scenes_bodies(soap, tmp_path):
+    key = '<keyframe><key name="open" qpos="1.2  0.15 0 0.25 1 0 0 0" ctrl="1.2"/></keyframe>'
+    scene = Scene(mjcf=_world(tmp_path, key), ground_height=None, duration=0.01,
+                  bodies=(DanoBody("soap", soap, pos=(0.0, 0.0, TOP + 0.015)),))  # fmt: skip
+    m = Simulation.from_scene(scene).model
+    assert m.nkey == 1 and m.key("open").qpos.shape == (m.nq,)
+    np.testing.assert_allclose(m.key("open").qpos[:8], [1.2, 0.15, 0, 0.25, 1, 0, 0, 0])
+    np.testing.assert_allclose(m.key("open").qpos[8:11], [0.0, 0.0, TOP + 0.015])  # the soap where it starts
+
+
+def test_bad_worlds_are_named_errors(soap, tmp_path):
+    body = (DanoBody("soap", soap, pos=(0.0, 0.0, 0.5)),)
+    with pytest.raises(SceneError, match="MJCF world .*missing.xml not found"):
+        Simulation.from_scene(Scene(mjcf=str(tmp_path / "missing.xml"), bodies=body))
+    with pytest.raises(SceneError, match="a robot or an MJCF world, not both"):
+        Scene(mjcf=_world(tmp_path), robot=Robot(str(tmp_path / "world.xml")), bodies=body)
+    (tmp_path / "can.xml").write_text('<mujoco><worldbody><geom name="can" type="cylinder" size="0.05 0.1"/>'
+                                      "</worldbody></mujoco>")  # fmt: skip
+    with pytest.raises(SceneError, match="geom can of type mjGEOM_CYLINDER cannot touch DANOs"):
+        Simulation.from_scene(Scene(mjcf=str(tmp_path / "can.xml"), bodies=body))
+    (tmp_path / "broken.xml").write_text("<mujoco><worldbody><body></mujoco>")
+    with pytest.raises(SceneError, match="MuJoCo cannot load it"):
+        Simulation.from_scene(Scene(mjcf=str(tmp_path / "broken.xml"), bodies=body))
+
+
+def test_a_dano_rests_on_the_worlds_floor_plane_and_a_scene_file_names_its_world(soap, tmp_path):
+    from dano.io import save_dano
+    from dano.sim import load_scene
+
+    _world(tmp_path)
+    save_dano(tmp_path / "soap.dano.npz", soap)
+    (tmp_path / "scene.toml").write_text(
+        '[sim]\nduration = 0.4\n[world]\nmjcf = "world.xml"\n'
+        '[[body]]\nname = "soap"\ndano = "soap.dano.npz"\npos = [1.0, 1.0, 0.03]\n'
+    )  # fmt: skip
+    scene = load_scene(tmp_path / "scene.toml")
+    assert scene.mjcf == str(tmp_path / "world.xml") and scene.ground_height is None
+    sim = Simulation.from_scene(scene)
+    traj = sim.run()
+    a = sim.world.dano_qpos[0]
+    assert float(traj.qpos[-1, a + 2]) == pytest.approx(0.015, abs=1e-3)  # on the world's plane (DANO contact)
+
+
+@pytest.mark.slow
+def test_friction_is_identified_from_a_slide_on_the_worlds_table(soap, tmp_path):
+    from dano.contact import ContactParams
+    from dano.sysid import Recording, identify, make_problem
+    from dano.sysid.experiments import slide_track
+
+    body = DanoBody("object", soap, pos=(-0.25, 0.0, TOP + 0.015), vel=(1.0, 0.0, 0.0))
+    truth = Scene(
+        mjcf=_world(tmp_path), ground_height=None, contact=ContactParams(sliding_friction=0.4), bodies=(body,)
+    )
+    track = slide_track(truth, fps=120.0, n_frames=25, lead=2)
+    guess = dataclasses.replace(truth, contact=ContactParams(sliding_friction=0.2))
+    problem = make_problem(guess, [Recording({"object": track})], ["friction"], initial="velocity")
+    result = identify(problem, init={"sliding_friction": 0.2})
+    assert result.converged and result.params["sliding_friction"] == pytest.approx(0.4, rel=1e-3)
