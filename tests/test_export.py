@@ -143,3 +143,30 @@ def test_a_robots_mesh_files_travel_with_the_exported_file(soap, tmp_path):
     run = subprocess.run([sys.executable, "-c", LOAD, str(moved / "scene.xml"), "10"], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout)["mass"] == pytest.approx(float(soap.mass), rel=1e-9)
+
+
+def test_a_scene_in_an_mjcf_world_is_exported_with_the_worlds_bodies_actuators_and_keyframes(soap, tmp_path):
+    import shutil
+
+    import mujoco
+
+    (tmp_path / "world").mkdir()
+    (tmp_path / "world" / "world.xml").write_text(
+        """<mujoco><worldbody><geom name="floor" type="plane" size="1 1 0.1"/>
+        <body name="lid" pos="0.3 0 0.2"><joint name="hinge" axis="1 0 0"/>
+        <geom type="box" size="0.05 0.05 0.005" mass="0.1"/></body></worldbody>
+        <actuator><position name="motor" joint="hinge" kp="2"/></actuator>
+        <keyframe><key name="open" qpos="0.7" ctrl="0.7"/></keyframe></mujoco>"""
+    )
+    scene = Scene(mjcf=str(tmp_path / "world" / "world.xml"), ground_height=None,
+                  bodies=(DanoBody("soap", soap, pos=(0.0, 0.0, 0.05)),))  # fmt: skip
+    export_scene(scene, tmp_path / "out" / "scene.xml", method="vhacd", resolution=20, progress=False)
+    shutil.rmtree(tmp_path / "world")  # the world's file is not needed: the export holds it
+    model = mujoco.MjModel.from_xml_path(str(tmp_path / "out" / "scene.xml"))
+    assert model.nu == 1 and model.nkey == 1 and model.key("open").qpos[0] == 0.7
+    assert model.body_mass[model.body("soap").id] == pytest.approx(float(soap.mass), rel=1e-9)
+    data = mujoco.MjData(model)
+    for _ in range(1500):
+        mujoco.mj_step(model, data)
+    a = model.jnt_qposadr[model.body("soap").jntadr[0]]
+    assert min(abs(data.qpos[a + 2] - h) for h in (0.015, 0.03, 0.045)) < 2e-3  # on the world's floor
