@@ -23,7 +23,7 @@ import numpy as np
 from dano.baselines.mesh import convex_decomposition
 from dano.errors import DanoError, MeshError
 from dano.io import atomic_folder, atomic_write
-from dano.sim.compile import scene_spec
+from dano.sim.compile import add_mesh_geom, scene_spec
 from dano.sim.scene import DanoBody, Scene
 from dano.surface import surface_mesh
 
@@ -114,16 +114,9 @@ def _add_geoms(spec: mujoco.MjSpec, body: DanoBody, friction, method, threshold,
     except MeshError as e:
         raise ExportError(f"{body.name}: {e}") from None
     pieces = convex_decomposition(surface, method=method, threshold=threshold, progress=progress)
-    b = spec.body(body.name)
-    meshes = [(f"{body.name}_surface", surface)] + [(f"{body.name}_hull{i}", p) for i, p in enumerate(pieces)]
-    for k, (name, mesh) in enumerate(meshes):
-        spec.add_mesh(name=name, uservert=mesh.vertices.ravel().tolist(), userface=mesh.faces.ravel().tolist())
-        geom = b.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, friction=friction, mass=0.0)
-        if k == 0:
-            geom.contype = geom.conaffinity = 0
-            geom.group, geom.rgba = 1, [0.85, 0.55, 0.35, 1.0]
-        else:
-            geom.group = 3
+    add_mesh_geom(spec, body.name, f"{body.name}_surface", surface, collide=False, group=1, rgba=[0.85, 0.55, 0.35, 1])
+    for i, piece in enumerate(pieces):
+        add_mesh_geom(spec, body.name, f"{body.name}_hull{i}", piece, collide=True, group=3, friction=friction)
 
 
 def _add_keyframes(root: ET.Element, model: mujoco.MjModel, trajectory: str | Path) -> None:

@@ -72,6 +72,17 @@ _GEOM = {
 }
 
 
+def add_mesh_geom(spec: mujoco.MjSpec, body: str, name: str, mesh, *, collide: bool, **attrs):
+    """A massless geom of a triangle mesh (`trimesh.Trimesh`, written inline as the mesh asset
+    `name`) on `body`: a DANO's drawn surface (`collide=False`: no MuJoCo contact) or a convex piece
+    of it, for renders and exports. `attrs` are the geom's own (rgba, group, friction)."""
+    spec.add_mesh(name=name, uservert=mesh.vertices.ravel().tolist(), userface=mesh.faces.ravel().tolist())
+    geom = spec.body(body).add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, mass=0.0, **attrs)
+    if not collide:
+        geom.contype = geom.conaffinity = 0
+    return geom
+
+
 def add_primitive(spec: mujoco.MjSpec, p: Primitive, friction: float | None = None) -> None:
     """Adds a primitive to a MuJoCo spec as dano's scenes have it: a static geom, a free or mocap
     body, or an actuated one (three world-axis slides under force motors, weight compensated);

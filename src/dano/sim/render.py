@@ -150,7 +150,7 @@ def coverage(sim, traj, width: int = 640, height: int = 480, style: Style | str 
 def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500):
     """The model to draw the simulation's scene with, and the points to draw per DANO (None for a
     DANO drawn as its surface mesh, which the model then holds as a visual geom of its body)."""
-    from dano.sim.compile import scene_spec
+    from dano.sim.compile import add_mesh_geom, scene_spec
     from dano.surface import surface_mesh
 
     style = V.option(style, "style", DanoError, Style)
@@ -159,12 +159,8 @@ def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500)
     for i, (body, state) in enumerate(zip(sim.scene.bodies, sim.world.danos, strict=True)):
         if style is Style.surface and body.dano.grid is not None:
             spec = spec or scene_spec(sim.scene)[0]
-            mesh = surface_mesh(body.dano)
-            name = f"{body.name}_surface"
-            spec.add_mesh(name=name, uservert=mesh.vertices.ravel().tolist(), userface=mesh.faces.ravel().tolist())
-            geom = spec.body(body.name).add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name)
-            geom.contype = geom.conaffinity = 0
-            geom.mass, geom.rgba = 0.0, _COLOURS[i % len(_COLOURS)].tolist()
+            rgba = _COLOURS[i % len(_COLOURS)].tolist()
+            add_mesh_geom(spec, body.name, f"{body.name}_surface", surface_mesh(body.dano), collide=False, rgba=rgba)
             clouds.append(None)
             continue
         pts = np.asarray(state.points).T
