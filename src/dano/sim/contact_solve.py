@@ -211,10 +211,27 @@ def missed(c: ContactProblem, sets: _Active, u_n0: list, V: Array) -> Array:
     return out
 
 
+class Solution(NamedTuple):
+    """A step's solve: V', whether a dropped point turned out live (the step went dense), the
+    velocities the last pass's friction was taken at, and the active sets' points (None where every
+    pair was solved over all its points)."""
+
+    V_next: Array
+    over: Array
+    V_before: Array
+    sparse: _Sets | None
+
+
 def solved(c: ContactProblem) -> tuple[Array, Array, Array]:
+    """The pairs' contact solved (`solve`): V', whether the step went dense, and the reactions
+    (`xfrc_applied`)."""
+    s = solve(c)
+    return s.V_next, s.over, reactions(c, s)
+
+
+def solve(c: ContactProblem) -> Solution:
     """The pairs' contact solved: over each pair's active set, checked, or over all points; the
-    passes are one traced pass run `PASSES` times (they differ only in their data). Returns V', whether
-    a dropped point turned out live (the step went dense), and the reactions (`xfrc_applied`)."""
+    passes are one traced pass run `PASSES` times (they differ only in their data)."""
     sets = active_sets(c)
     sparse_step = any(a is not None for a in sets.actives)
     # Every point's normal velocity at V~, for the exact check (once per step, not per pass).
@@ -260,35 +277,51 @@ def solved(c: ContactProblem) -> tuple[Array, Array, Array]:
         return solve_implicit(forward, solved_over, x0), V_before
 
     (V_next, over), befores = jax.lax.scan(one_pass, (c.V_free, jnp.zeros((), bool)), jnp.arange(PASSES))
-    return V_next, over, reactions(c, V_next, befores[-1], over, sets.sparse if sparse_step else None)
+    return Solution(V_next, over, befores[-1], sets.sparse if sparse_step else None)
 
 
-def reactions(c: ContactProblem, V_next: Array, V_before: Array, over: Array, sparse: _Sets | None) -> Array:
-    """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (the pair's force on the DANO is
-    -dT/dV_a / h), over the points the last pass was solved over: the active sets (`sparse`), or
-    all points where there are none or they overflowed (`over`)."""
+def pair_wrench(c: ContactProblem, s: Solution, j: int, point: bool = False) -> tuple[Array, Array | None]:
+    """Pair j's wrench on its DANO at the solution (force, torque about the DANO's centre of mass;
+    world; -dT/dV_a / h) over the points the last pass was solved over (the active sets, or all
+    points where there are none or they overflowed), and with `point` where its normal force acts
+    (the centroid of its points' positive normal forces, world; the DANO's centre without any)."""
     last_on = jnp.asarray(float(PASSES > 1), c.V_free.dtype)
+
+    def of(sets):
+        g = pair_terms(c, sets, j, with_friction(c, sets, s.V_before, last_on), s.V_next)[1]
+        if not point:
+            return -g[:6] / c.h, None
+        p, sup, pt = c.params.contact[j], sets.supports[j], sets.patches[j]
+        Vj = pair_velocity(c, j, s.V_next)
+        _, _, _, depth, u_n = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], c.h, Vj, c.centroid)
+        N = jnp.maximum(p.impact_spring * overlap(sup, depth) - p.impact_damper * sets.psi0[j] * u_n, 0.0)
+        total = jnp.sum(N)
+        centre = c.frames[c.pair_list[j][0]].x
+        return -g[:6] / c.h, jnp.where(total > 0, sup.at @ N / jnp.where(total > 0, total, 1.0), centre)
+
+    def every():
+        return of(point_sets(c, c.supports, c.patches))
+
+    sparse = s.sparse
+    return every() if sparse is None else jax.lax.cond(s.over, every, lambda: of(sparse))
+
+
+def reactions(c: ContactProblem, s: Solution) -> Array:
+    """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (`pair_wrench`)."""
     xfrc = c.xfrc
-    for s, body in enumerate(c.prim_body):  # a free primitive: the wrench that takes it to V'
-        e = slice(6 * (c.n + s), 6 * (c.n + s) + 6)
-        xfrc = scatter(xfrc, body, c.M[e, e] @ (V_next[e] - c.V_free[e]) / c.h)
+    for k, body in enumerate(c.prim_body):  # a free primitive: the wrench that takes it to V'
+        e = slice(6 * (c.n + k), 6 * (c.n + k) + 6)
+        xfrc = scatter(xfrc, body, c.M[e, e] @ (s.V_next[e] - c.V_free[e]) / c.h)
     for j, ((i, kind, _), mate) in enumerate(zip(c.pair_list, c.mates, strict=True)):
         if mate.body < 0 or c.other[j] >= 0:
             continue
-
-        def grad_of(sets, j=j):
-            return pair_terms(c, sets, j, with_friction(c, sets, V_before, last_on), V_next)[1]
-
-        def every():
-            return grad_of(point_sets(c, c.supports, c.patches))
-
-        g = every() if sparse is None else jax.lax.cond(over, every, lambda sparse=sparse: grad_of(sparse))
+        w = pair_wrench(c, s, j)[0]
         if kind == "link":
             assert c.kin is not None  # `link_motion` ran: the world has links
             centre = c.kin.xipos[mate.body]
         else:
             centre = mate.frame.x
-        xfrc = scatter(xfrc, mate.body, reaction_of(-g[:6] / c.h, c.frames[i].x, centre))
+        xfrc = scatter(xfrc, mate.body, reaction_of(w, c.frames[i].x, centre))
     return xfrc
 
 

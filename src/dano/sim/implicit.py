@@ -50,7 +50,7 @@ from dano.contact.overlap import signed_distance
 from dano.contact.pairs import Body, Frame
 from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
-from dano.sim.contact_solve import ContactProblem, solved, untouched
+from dano.sim.contact_solve import ContactProblem, pair_wrench, solve, solved, untouched
 from dano.sim.step import (
     Partner,
     dano_bodies,
@@ -167,6 +167,34 @@ def implicit_step(
     if world.fallback_slot >= 0:
         d = d.replace(userdata=d.userdata.at[world.fallback_slot].add(over.astype(d.userdata.dtype)))
     return d
+
+
+def implicit_contacts(
+    world: World,
+    params: Params,
+    m: mjx.Model,
+    d: mjx.Data,
+    mocap_vel: Float[Array, "k 3"] | None = None,
+    external: Float[Array, "nbody 6"] | None = None,
+) -> tuple[Array, Array]:
+    """The contact of the implicit step from `d` (`implicit_step`'s arguments): per pair (`pairs`),
+    its wrench on its DANO (P, 6: force, torque about the DANO's centre of mass; world) and where its
+    normal force acts (P, 3; the DANO's centre where it does not touch)."""
+    free = tuple(k for k, p in enumerate(world.prims) if p.moving)
+    f = _free_motion(world, params, m, d, free, external)
+    c = _contact_problem(world, params, m, d, mocap_vel, f, free)
+    centres = jnp.stack([c.frames[i].x for i, _, _ in c.pair_list]) if c.pair_list else jnp.zeros((0, 3))
+    none = (jnp.zeros((len(c.pair_list), 6)), centres)
+    if not c.pair_list:
+        return none
+
+    def touching():
+        s = solve(c)
+        out = [pair_wrench(c, s, j, point=True) for j in range(len(c.pair_list))]
+        return jnp.stack([w for w, _ in out]), jnp.stack([at for _, at in out])
+
+    live = jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in c.supports]))
+    return jax.lax.cond(live, touching, lambda: none)
 
 
 class _Free(NamedTuple):

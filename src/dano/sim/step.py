@@ -191,9 +191,10 @@ def implicit_damper(p: ContactParams, psi, inv_m_eff, dt: float) -> ContactParam
 
 def explicit_pair_wrench(
     world: World, p: ContactParams, partner: Partner, bodies, frames, i: int
-) -> Float[Array, " 6"]:
+) -> tuple[Float[Array, " 6"], Float[Array, " 3"]]:
     """The explicit step's wrench on DANO i from its partner (eqs. 11-16): force and torque about
-    the DANO's centre of mass, world, with the damper made linearly implicit."""
+    the DANO's centre of mass, world, with the damper made linearly implicit; and where it acts
+    (the overlap's centroid chi, world; the DANO's centre where there is no overlap)."""
     a = frames[i]
     b = frames[partner.dano] if partner.dano >= 0 else partner.frame
     pts = pair_points(world, p, partner, bodies, i, a, b)
@@ -207,7 +208,7 @@ def explicit_pair_wrench(
         inv_m = inv_m + partner.inv_mass
     p = implicit_damper(p, psi, inv_m, world.dt)
     w = contact_wrench(p, pts.psi, pts.at, pts.normal, a.x, a.v, a.w, b.x, b.v, b.w)
-    return jnp.concatenate([w.force, w.torque])
+    return jnp.concatenate([w.force, w.torque]), jnp.where(psi > 0, chi, a.x)
 
 
 def _mean_normal(pts: PointSet) -> Array:
@@ -239,7 +240,7 @@ def contact_xfrc(
         kin = link_motion(m, d)
     frames, bodies = dano_frames(world, d), dano_bodies(world, params)
     for p, (i, kind, _), partner in zip(params.contact, pairs(world), partners(world, d, mocap_vel, kin), strict=True):
-        w = explicit_pair_wrench(world, p, partner, bodies, frames, i)
+        w = explicit_pair_wrench(world, p, partner, bodies, frames, i)[0]
         xfrc = scatter(xfrc, world.dano_body[i], w)
         if partner.dano >= 0:
             xfrc = scatter(xfrc, world.dano_body[partner.dano], reaction(w, frames[i].x, frames[partner.dano].x))
@@ -251,6 +252,22 @@ def contact_xfrc(
                 centre = partner.frame.x
             xfrc = scatter(xfrc, partner.body, reaction(w, frames[i].x, centre))
     return xfrc
+
+
+def explicit_contacts(
+    world: World, params: Params, m: mjx.Model, d: mjx.Data, mocap_vel: Float[Array, "k 3"] | None = None
+) -> tuple[Array, Array]:
+    """`dano.sim.implicit.implicit_contacts` for the explicit step: per pair its wrench on its DANO
+    (P, 6) and where it acts (P, 3)."""
+    kin = link_motion(m, d) if world.links else None
+    frames, bodies = dano_frames(world, d), dano_bodies(world, params)
+    out = [
+        explicit_pair_wrench(world, p, partner, bodies, frames, i)
+        for p, (i, _, _), partner in zip(params.contact, pairs(world), partners(world, d, mocap_vel, kin), strict=True)
+    ]
+    if not out:
+        return jnp.zeros((0, 6)), jnp.zeros((0, 3))
+    return jnp.stack([w for w, _ in out]), jnp.stack([at for _, at in out])
 
 
 def scaled_model(world: World, params: Params, m: mjx.Model) -> mjx.Model:
