@@ -73,7 +73,8 @@ def contact_forces(sim, traj: Trajectory, params=None, ctrl=None, mocap_pos=None
             return implicit_contacts(world, params, m, d, mv)
         return explicit_contacts(world, params, m, d, mv)
 
-    wrench, point = jax.jit(lambda xs: jax.lax.map(one, xs, batch_size=batch))((qpos, qvel, ctrl_t, mocap_first, mocap_vel))
+    inputs = (qpos, qvel, ctrl_t, mocap_first, mocap_vel)
+    wrench, point = jax.jit(lambda xs: jax.lax.map(one, xs, batch_size=batch))(inputs)
     wrench, point = np.asarray(wrench), np.asarray(point)
     return ContactForces(names, point, wrench[..., :3], wrench[..., 3:])
 
