@@ -190,8 +190,13 @@ def implicit_contacts(
 
     def touching():
         s = solve(c)
-        out = [pair_wrench(c, s, j, point=True) for j in range(len(c.pair_list))]
-        return jnp.stack([w for w, _ in out]), jnp.stack([at for _, at in out])
+        wrenches, points = [], []
+        for j in range(len(c.pair_list)):
+            w, at = pair_wrench(c, s, j, point=True)
+            assert at is not None  # asked for
+            wrenches.append(w)
+            points.append(at)
+        return jnp.stack(wrenches), jnp.stack(points)
 
     live = jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in c.supports]))
     return jax.lax.cond(live, touching, lambda: none)
