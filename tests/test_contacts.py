@@ -109,3 +109,23 @@ def test_a_pushed_sphere_pair_is_named_and_pushes_along_its_motion(flat_box):
     push = forces.force[:, 1]
     assert push[-1, 0] > 0.1 and np.all(push[:, 0] >= -1e-9)  # along +x, never pulling
     assert abs(forces.point[-1, 1, 0] - np.asarray(traj.qpos[-1, 0]) + 0.05) < 3e-3  # on the box's -x face
+
+
+def test_an_actuated_pusher_driven_by_ctrl_feels_the_reaction_of_the_pair(flat_box):
+    """A force-controlled sphere (three world slides, ctrl in N) pushing the box along the floor:
+    the pair's force on the box is what the motor's force did not put into the sphere's momentum,
+    ctrl - m_s (v' - v) / h, every frame (the `ctrl` each frame ran with is the one read)."""
+    body = DanoBody("b", flat_box, pos=(0.0, 0.0, _lift(flat_box)))
+    ball = Primitive("ball", "sphere", (0.015,), pos=(-0.066, 0.0, 0.025), mode="actuated", mass=0.3)
+    scene = Scene(bodies=(body,), primitives=(ball,), substeps=1, contact=ContactParams(sliding_friction=0.3))
+    sim = Simulation.from_scene(scene)
+    frames = 150
+    push = np.linspace(0.0, 6.0, frames)  # N along +x, rising past the box's friction (2.9 N)
+    ctrl = np.stack([push, np.zeros(frames), np.zeros(frames)], axis=1)
+    traj = sim.run(frames, ctrl=ctrl)
+    forces = contact_forces(sim, traj, ctrl=ctrl)
+    v = np.asarray(traj.qvel)[:, 6:9]
+    h = sim.world.dt
+    expected = ctrl - 0.3 * (v[1:] - v[:-1]) / h
+    assert forces.names[1] == ("b", "ball") and np.max(forces.force[:-1, 1, 0]) > 3.0
+    np.testing.assert_allclose(forces.force[:-1, 1], expected, atol=1e-6)

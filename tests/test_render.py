@@ -74,3 +74,40 @@ def test_a_dano_without_a_grid_is_drawn_as_points_and_a_bad_style_is_named(soap,
     with pytest.raises(DanoError, match="style.*'surface', 'points'"):
         render_video(sim, sim.run(), tmp_path / "v.mp4", style="mesh", progress=False)
     assert list(tmp_path.iterdir()) == []
+
+
+def _red(picture: np.ndarray) -> np.ndarray:
+    """Pixels far redder than green: the arrows (red, lit), not the orange soap nor the floor."""
+    return picture[..., 0].astype(int) - picture[..., 1].astype(int) > 100
+
+
+def test_contact_forces_are_drawn_as_arrows_from_where_they_act(soap, tmp_path):
+    # The soap resting on the floor: one arrow, up from its bottom face, its weight half its size long.
+    from dano.sim.contacts import contact_forces
+    from dano.sim.render import SEE_THROUGH, contact_arrows
+
+    scene = Scene(duration=0.3, bodies=(DanoBody("soap", soap, pos=(0.0, 0.0, 0.016)),))
+    sim = Simulation.from_scene(scene)
+    traj = sim.run()
+    forces = contact_forces(sim, traj)
+    arrows = contact_arrows(sim, forces)
+    assert arrows.shape == (len(traj.qpos), 1, 3, 3)
+    start, end, width = arrows[-1, 0]
+    x = np.asarray(traj.qpos[-1, :3])
+    np.testing.assert_allclose(start[2], x[2] - SIZE[2] / 2, atol=2e-3)  # on the bottom face
+    np.testing.assert_allclose(end - start, [0.0, 0.0, 0.5 * SIZE[0]], atol=2e-3)  # its weight: half its size
+    assert width[0] > 0
+    model, clouds = scene_model(sim, alpha=SEE_THROUGH)
+    camera = frame_camera(model, np.asarray(traj.qpos), sim)
+    renderer = make_renderer(model, 240, 320, max_geom=10000)
+    data = mujoco.MjData(model)
+    plain = draw_frame(renderer, model, data, np.asarray(traj.qpos[-1]), camera, sim, clouds)
+    drawn = draw_frame(renderer, model, data, np.asarray(traj.qpos[-1]), camera, sim, clouds, arrows[-1])
+    renderer.close()
+    assert _red(plain).sum() == 0 and _red(drawn).sum() > 50
+    rows, cols = np.nonzero(_red(drawn))
+    assert 60 < cols.mean() < 260 and rows.mean() < 200  # in the middle, where the soap is
+    path = render_video(sim, traj, tmp_path / "v.gif", progress=False, contacts=forces, fps=10.0)
+    assert path.exists()
+    with pytest.raises(DanoError, match="contact forces have 2 frames, the trajectory 151"):
+        render_video(sim, traj, tmp_path / "w.gif", progress=False, contacts=contact_forces(sim, sim.run(1)))

@@ -99,7 +99,7 @@ def test_bad_scene_files_name_the_problem(ball_dir, tmp_path, edit, message):
 def test_simulate_cli_writes_csv_and_gif(ball_dir, tmp_path, capsys):
     out = tmp_path / "traj.csv"
     assert main(["simulate", str(ball_dir / "scene.toml"), "-o", str(out), "--steps", "30",
-                 "--video", str(tmp_path / "v.gif")]) == 0  # fmt: skip
+                 "--video", str(tmp_path / "v.gif"), "--contacts"]) == 0  # fmt: skip
     with out.open() as f:
         rows = list(csv.reader(f))
     assert rows[0] == ["t", "body", "x", "y", "z", "qw", "qx", "qy", "qz"]

@@ -210,6 +210,10 @@ def test_a_scene_with_no_bodies_is_refused(folder):
         (["simulate", "S", "-o", "O.csv", "--video", "O.avi"], "argument --video: 'O.avi' must end with .mp4 or .gif"),
         (["simulate", "S", "-o", "missing/O.csv"], "folder 'missing' of 'missing/O.csv' does not exist"),
         (["simulate", "S", "-o", "."], "'.' is a folder; give a file name"),
+        (
+            ["simulate", "S", "-o", "O.csv", "--contacts"],
+            "--contacts draws the contact forces in the video: give --video",
+        ),
         (["build", "sphere:r=0.05", "-o", "O.dano.npz", "--mass", "nan"], "argument --mass: must be finite"),
     ],
 )

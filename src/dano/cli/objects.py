@@ -10,6 +10,7 @@ import numpy as np
 from dano.cli.arguments import (
     _POSITIVE,
     VIDEO,
+    UsageError,
     _checked,
     _in_a_folder,
     _int,
@@ -87,6 +88,8 @@ def _add_simulate(sub) -> None:
     s.add_argument("--video", type=_output(*VIDEO), help="render to this .mp4 or .gif")
     s.add_argument("--style", choices=["surface", "points"], default="surface",
                    help="draw each DANO as its surface (default) or its surface points")  # fmt: skip
+    s.add_argument("--contacts", action="store_true",
+                   help="draw each contact's force as an arrow in the video (its weight: half its size)")  # fmt: skip
     s.add_argument("--steps", type=_int(1), help="frames to simulate (default: duration / timestep)")
     s.add_argument("--json", action="store_true", help="one JSON object (output, frames, bodies, video, profile)")
     s.add_argument("--profile", action="store_true",
@@ -196,6 +199,8 @@ def _simulate(args: argparse.Namespace) -> None:
     from dano.sim import load_scene
     from dano.sim.run import Simulation, write_csv
 
+    if args.contacts and not args.video:
+        raise UsageError("--contacts draws the contact forces in the video: give --video VIDEO.mp4 too")
     scene = load_scene(args.scene)
     sim = Simulation.from_scene(scene)
     n = scene.n_steps if args.steps is None else args.steps
@@ -208,7 +213,13 @@ def _simulate(args: argparse.Namespace) -> None:
     if args.video:
         from dano.sim.render import render_video
 
-        human.append(f"wrote {render_video(sim, traj, args.video, progress=not args.json, style=args.style)}")
+        contacts = None
+        if args.contacts:
+            from dano.sim.contacts import contact_forces
+
+            contacts = contact_forces(sim, traj)
+        video = render_video(sim, traj, args.video, progress=not args.json, style=args.style, contacts=contacts)
+        human.append(f"wrote {video}")
     if args.profile:
         import dataclasses
 

@@ -87,6 +87,8 @@ def _add_trajopt(sub) -> None:
     )
     t.add_argument("--max-iterations", type=_int(1), default=150)
     t.add_argument("--video", type=_output(*VIDEO), help="render the open-loop replay to this .mp4 or .gif")
+    t.add_argument("--contacts", action="store_true",
+                   help="draw each contact's force as an arrow in the video (its weight: half its size)")  # fmt: skip
     t.add_argument("--style", choices=["surface", "points"], default="surface",
                    help="draw the DANO as its surface (default) or its surface points")  # fmt: skip
     t.add_argument("--json", action="store_true",
@@ -205,7 +207,7 @@ def _trajopt(args: argparse.Namespace) -> None:
     options = dataclasses.replace(default_options(args.robot), max_iterations=args.max_iterations)
     result = solve_push(push, options, progress=not args.json)
     if args.video:
-        render_push(push, result, args.video, progress=not args.json, style=args.style)
+        render_push(push, result, args.video, progress=not args.json, style=args.style, contacts=args.contacts)
     if args.report:
         _trajopt_report(args, push, result)
     if args.json:

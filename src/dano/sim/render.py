@@ -98,6 +98,7 @@ def render_video(
     max_points: int = 1500,
     progress: bool = True,
     style: Style | str = Style.surface,
+    contacts=None,
 ) -> Path:
     """Renders a trajectory to `path` (.mp4 via ffmpeg, or .gif), written atomically.
 
@@ -107,19 +108,26 @@ def render_video(
         fps: frames per second of the video; simulation frames are subsampled to match.
         max_points: points drawn per DANO drawn as points.
         style: `Style.surface` (default) or `Style.points` (module docstring).
+        contacts: the trajectory's `dano.sim.contacts.ContactForces`, drawn as red arrows from where
+            each pair's force acts (`contact_arrows`; the DANOs' surfaces then see-through, as the
+            force on a body acts on its face and points into it), or None.
     """
     path = Path(path)
     if path.suffix.lower() not in (".mp4", ".gif"):
         raise DanoError(f"video must be .mp4 or .gif, got {path.name}")
     qpos = np.asarray(traj.qpos)
+    if contacts is not None and contacts.force.shape[0] != len(qpos):
+        raise DanoError(f"the contact forces have {contacts.force.shape[0]} frames, the trajectory {len(qpos)}")
     every = max(1, int(round(1.0 / (fps * sim.scene.timestep))))
-    model, clouds = scene_model(sim, style, max_points)
+    model, clouds = scene_model(sim, style, max_points, alpha=1.0 if contacts is None else SEE_THROUGH)
     renderer = make_renderer(model, height, width, max_geom=10000)
     data = mujoco.MjData(model)
     camera = frame_camera(model, qpos[::every], sim, width / height)
+    arrows = None if contacts is None else contact_arrows(sim, contacts)
     frames = []
     for t in tqdm(range(0, len(qpos), every), desc="render", disable=not progress, unit="frame"):
-        frames.append(draw_frame(renderer, model, data, qpos[t], camera, sim, clouds))
+        frame_arrows = None if arrows is None else arrows[t]
+        frames.append(draw_frame(renderer, model, data, qpos[t], camera, sim, clouds, frame_arrows))
     renderer.close()
     with atomic_write(path, suffix=path.suffix) as tmp:
         if path.suffix.lower() == ".gif":
@@ -147,9 +155,14 @@ def coverage(sim, traj, width: int = 640, height: int = 480, style: Style | str 
     }
 
 
-def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500):
+SEE_THROUGH = 0.45
+"""The DANOs' surfaces' opacity where contact arrows are drawn."""
+
+
+def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500, alpha: float = 1.0):
     """The model to draw the simulation's scene with, and the points to draw per DANO (None for a
-    DANO drawn as its surface mesh, which the model then holds as a visual geom of its body)."""
+    DANO drawn as its surface mesh, which the model then holds as a visual geom of its body, of
+    opacity `alpha`)."""
     from dano.sim.compile import add_mesh_geom, scene_spec
     from dano.surface import surface_mesh
 
@@ -159,7 +172,7 @@ def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500)
     for i, (body, state) in enumerate(zip(sim.scene.bodies, sim.world.danos, strict=True)):
         if style is Style.surface and body.dano.grid is not None:
             spec = spec or scene_spec(sim.scene)[0]
-            rgba = _COLOURS[i % len(_COLOURS)].tolist()
+            rgba = [*_COLOURS[i % len(_COLOURS)][:3].tolist(), alpha]
             add_mesh_geom(spec, body.name, f"{body.name}_surface", surface_mesh(body.dano), collide=False, rgba=rgba)
             clouds.append(None)
             continue
@@ -173,9 +186,10 @@ def scene_model(sim, style: Style | str = Style.surface, max_points: int = 1500)
     return model, clouds
 
 
-def draw_frame(renderer, model, data, qpos, camera, sim, clouds) -> np.ndarray:
+def draw_frame(renderer, model, data, qpos, camera, sim, clouds, arrows=None) -> np.ndarray:
     """One picture of the state `qpos` (the renderer's pixels, or its segmentation when enabled),
-    with `model` and `clouds` from `scene_model`."""
+    with `model` and `clouds` from `scene_model` and this frame's `arrows` (k, 2, 3) from
+    `contact_arrows`, if any."""
     data.qpos[:] = qpos
     mujoco.mj_forward(model, data)
     renderer.update_scene(data, camera)
@@ -183,7 +197,36 @@ def draw_frame(renderer, model, data, qpos, camera, sim, clouds) -> np.ndarray:
     for i, (a, pts) in enumerate(zip(sim.world.dano_qpos, clouds, strict=True)):
         if pts is not None:
             _add_points(renderer.scene, qpos[a : a + 3], qpos[a + 3 : a + 7], pts, _COLOURS[i % len(_COLOURS)])
+    for start, end, width in () if arrows is None else arrows:
+        scene = renderer.scene
+        if width[0] > 0 and scene.ngeom < scene.maxgeom:
+            g = scene.geoms[scene.ngeom]
+            mujoco.mjv_initGeom(g, mujoco.mjtGeom.mjGEOM_ARROW, np.zeros(3), np.zeros(3), np.eye(3).ravel(), ARROW_RGBA)
+            mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_ARROW, width[0], start, end)
+            g.category = mujoco.mjtCatBit.mjCAT_DECOR
+            scene.ngeom += 1
     return renderer.render().copy()
+
+
+ARROW_RGBA = np.array([0.9, 0.1, 0.1, 1.0], np.float32)
+"""The colour of the contact force arrows."""
+
+
+def contact_arrows(sim, contacts, scale: float = 0.5) -> np.ndarray:
+    """Arrows (T+1, P, 3, 3): per frame and pair, (start, end, (width, 0, 0)) of the pair's force on
+    its DANO, from where it acts; a force equal to the DANO's weight is `scale` times the DANO's
+    size long (the largest extent of its surface points); forces under 1 % of the weight are not
+    drawn (width 0)."""
+    names = {n: i for i, n in enumerate(sim.world.names)}
+    states = [sim.world.danos[names[dano]] for dano, _ in contacts.names]
+    size = np.array([float(np.max(np.ptp(np.asarray(st.points), axis=1))) for st in states])
+    weight = np.array([float(st.mass) * 9.81 for st in states])
+    share = contacts.force / weight[None, :, None]  # of each DANO's weight
+    start = contacts.point
+    end = start + share * (scale * size)[None, :, None]
+    w = np.zeros_like(start)
+    w[..., 0] = np.where(np.linalg.norm(share, axis=-1) > 0.01, 0.04 * size[None, :], 0.0)
+    return np.stack([start, end, w], axis=2)
 
 
 def frame_camera(model: mujoco.MjModel, qpos: np.ndarray, sim, aspect: float = 4 / 3) -> mujoco.MjvCamera:

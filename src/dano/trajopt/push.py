@@ -243,11 +243,17 @@ def solve_push(push: PushProblem, options: Options | None = None, progress: bool
 
 
 def render_push(
-    push: PushProblem, result: PushResult, path, frames_per_step: int = 4, progress: bool = True, style: str = "surface"
+    push: PushProblem,
+    result: PushResult,
+    path,
+    frames_per_step: int = 4,
+    progress: bool = True,
+    style: str = "surface",
+    contacts: bool = False,
 ):
     """Renders the open-loop replay with `frames_per_step` video frames per control step (the same
     substeps, regrouped: a control is held over its step), at the real-time frame rate; `style` as
-    in `dano.sim.render.render_video`."""
+    in `dano.sim.render.render_video`; `contacts`: the contact forces drawn as arrows."""
     from dano.sim.render import render_video
 
     scene = push.sim.scene
@@ -260,4 +266,10 @@ def render_push(
     sim = Simulation.from_scene(fine)
     ctrl = jnp.repeat(push.full_ctrl(jnp.asarray(result.solution.controls)), frames_per_step, axis=0)
     traj = sim.run(push.task.horizon * frames_per_step, ctrl=ctrl)
-    return render_video(sim, traj, path, fps=frames_per_step / push.task.dt, progress=progress, style=style)
+    forces = None
+    if contacts:
+        from dano.sim.contacts import contact_forces
+
+        forces = contact_forces(sim, traj, ctrl=ctrl)
+    fps = frames_per_step / push.task.dt
+    return render_video(sim, traj, path, fps=fps, progress=progress, style=style, contacts=forces)
