@@ -98,8 +98,9 @@ def test_bad_scene_files_name_the_problem(ball_dir, tmp_path, edit, message):
 
 def test_simulate_cli_writes_csv_and_gif(ball_dir, tmp_path, capsys):
     out = tmp_path / "traj.csv"
+    video, view = str(tmp_path / "v.gif"), str(tmp_path / "v.html")
     assert main(["simulate", str(ball_dir / "scene.toml"), "-o", str(out), "--steps", "30",
-                 "--video", str(tmp_path / "v.gif"), "--contacts"]) == 0  # fmt: skip
+                 "--video", video, "--contacts", "--view", view]) == 0  # fmt: skip
     with out.open() as f:
         rows = list(csv.reader(f))
     assert rows[0] == ["t", "body", "x", "y", "z", "qw", "qx", "qy", "qz"]
@@ -108,6 +109,7 @@ def test_simulate_cli_writes_csv_and_gif(ball_dir, tmp_path, capsys):
     z = [float(r[4]) for r in rows[1:]]
     assert z[-1] < z[0]  # it falls
     assert (tmp_path / "v.gif").stat().st_size > 1000
+    assert '"arrows":[' in (tmp_path / "v.html").read_text()  # the view, with its contact forces
 
 
 def test_two_danos_collide_and_conserve_momentum():

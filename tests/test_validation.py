@@ -212,7 +212,7 @@ def test_a_scene_with_no_bodies_is_refused(folder):
         (["simulate", "S", "-o", "."], "'.' is a folder; give a file name"),
         (
             ["simulate", "S", "-o", "O.csv", "--contacts"],
-            "--contacts draws the contact forces in the video: give --video",
+            "--contacts draws the contact forces in the video or the view",
         ),
         (["build", "sphere:r=0.05", "-o", "O.dano.npz", "--mass", "nan"], "argument --mass: must be finite"),
     ],

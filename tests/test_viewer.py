@@ -78,3 +78,43 @@ def test_bad_views_are_named_errors_and_write_nothing(soap, tmp_path, capsys):
     assert main(["view", str(tmp_path / "soap.dano.npz"), "-o", str(tmp_path / "v.html"), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["bodies"] == ["soap"] and summary["bytes"] == (tmp_path / "v.html").stat().st_size
+
+
+def _red_share(shot: np.ndarray) -> float:
+    rgb = shot[..., :3].astype(int)
+    return float(np.mean((rgb[..., 0] > 180) & (rgb[..., 1] < 90) & (rgb[..., 2] < 90)))
+
+
+def test_a_simulation_is_shown_with_its_scene_geoms_and_contact_forces(soap, tmp_path):
+    # The soap dropped onto a static box (a table): the table is in the view, where the scene put
+    # it, and the soap's contact with it is an arrow up from its bottom face at the end.
+    from dano.sim import Primitive
+    from dano.sim.contacts import contact_forces
+    from dano.sim.run import Simulation
+    from dano.viewer import view_simulation
+
+    table = Primitive("table", "box", (0.1, 0.08, 0.02), pos=(0.0, 0.0, 0.02))
+    scene = Scene(duration=0.3, bodies=(DanoBody("soap", soap, pos=(0.0, 0.0, 0.07)),), primitives=(table,))
+    sim = Simulation.from_scene(scene)
+    traj = sim.run()
+    forces = contact_forces(sim, traj)
+    page = view_simulation(tmp_path / "view.html", sim, traj, contacts=forces)
+    data = _data(page)
+    (solid,) = [s for s in data["solids"] if s["name"] == "table"]
+    vertices = np.asarray(solid["vertices"]).reshape(-1, 3)
+    np.testing.assert_allclose(np.ptp(vertices, axis=0), [0.2, 0.16, 0.04], atol=1e-9)
+    np.testing.assert_allclose(solid["poses"][-1], [0.0, 0.0, 0.02, 1.0, 0.0, 0.0, 0.0], atol=1e-9)
+    assert len(data["arrows"]) == len(data["t"]) == 151 and data["arrows"][0] == []  # in the air at first
+    ((start, end),) = np.asarray(data["arrows"][-1]).reshape(-1, 2, 3)  # the table's only: the floor's is 0
+    np.testing.assert_allclose(start[2], 0.04, atol=2e-3)  # the table's top
+    assert end[2] > start[2] + 0.03  # up, half the soap's size for its weight (0.045 m)
+    shot, console = browser_screenshot(page, tmp_path / "view.png", size=(800, 600))
+    assert console == [] and _surface_share(shot) > 0.01
+    # The page opens at the first frame: no force yet. At the last frame the arrow shows in red.
+    last = page.read_text().replace("let frame = 0;", f"let frame = {len(data['t']) - 1};")
+    (tmp_path / "last.html").write_text(last)
+    shot, console = browser_screenshot(tmp_path / "last.html", tmp_path / "last.png", size=(800, 600))
+    assert console == []
+    page.write_text(last.replace('id="arrows" checked', 'id="arrows"'))
+    off, console = browser_screenshot(page, tmp_path / "off.png", size=(800, 600))
+    assert console == [] and _red_share(shot) > _red_share(off) + 2e-4  # (the centre-of-mass cross is red too)

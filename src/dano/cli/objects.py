@@ -88,8 +88,10 @@ def _add_simulate(sub) -> None:
     s.add_argument("--video", type=_output(*VIDEO), help="render to this .mp4 or .gif")
     s.add_argument("--style", choices=["surface", "points"], default="surface",
                    help="draw each DANO as its surface (default) or its surface points")  # fmt: skip
+    s.add_argument("--view", type=_output(".html"),
+                   help="write an interactive 3D view of the run (dano view's page, every geom moving)")  # fmt: skip
     s.add_argument("--contacts", action="store_true",
-                   help="draw each contact's force as an arrow in the video (its weight: half its size)")  # fmt: skip
+                   help="draw contact forces as arrows in the video and the view (weight: half the size)")  # fmt: skip
     s.add_argument("--steps", type=_int(1), help="frames to simulate (default: duration / timestep)")
     s.add_argument("--json", action="store_true", help="one JSON object (output, frames, bodies, video, profile)")
     s.add_argument("--profile", action="store_true",
@@ -199,8 +201,8 @@ def _simulate(args: argparse.Namespace) -> None:
     from dano.sim import load_scene
     from dano.sim.run import Simulation, write_csv
 
-    if args.contacts and not args.video:
-        raise UsageError("--contacts draws the contact forces in the video: give --video VIDEO.mp4 too")
+    if args.contacts and not (args.video or args.view):
+        raise UsageError("--contacts draws the contact forces in the video or the view: give --video or --view too")
     scene = load_scene(args.scene)
     sim = Simulation.from_scene(scene)
     n = scene.n_steps if args.steps is None else args.steps
@@ -210,16 +212,21 @@ def _simulate(args: argparse.Namespace) -> None:
     bodies = len(sim.world.names) + sum(p.qpos >= 0 for p in sim.world.prims)
     summary: dict = {"output": args.output, "frames": n + 1, "bodies": int(bodies), "video": args.video}
     human = [f"wrote {args.output}: {n + 1} frames x {bodies} bodies"]
+    contacts = None
+    if args.contacts:
+        from dano.sim.contacts import contact_forces
+
+        contacts = contact_forces(sim, traj)
     if args.video:
         from dano.sim.render import render_video
 
-        contacts = None
-        if args.contacts:
-            from dano.sim.contacts import contact_forces
-
-            contacts = contact_forces(sim, traj)
         video = render_video(sim, traj, args.video, progress=not args.json, style=args.style, contacts=contacts)
         human.append(f"wrote {video}")
+    if args.view:
+        from dano.viewer import view_simulation
+
+        human.append(f"wrote {view_simulation(args.view, sim, traj, contacts=contacts, title=Path(args.scene).name)}")
+        summary["view"] = args.view
     if args.profile:
         import dataclasses
 
