@@ -2,6 +2,7 @@
 contacts kept; its geoms touch the DANOs through the DANO contact model."""
 
 import dataclasses
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -151,3 +152,42 @@ def test_friction_is_identified_from_a_slide_on_the_worlds_table(soap, tmp_path)
     problem = make_problem(guess, [Recording({"object": track})], ["friction"], initial="velocity")
     result = identify(problem, init={"sliding_friction": 0.2})
     assert result.converged and result.params["sliding_friction"] == pytest.approx(0.4, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_a_sphere_pushes_the_dano_to_its_goal_on_the_worlds_table(soap, tmp_path):
+    """Trajectory optimisation in the world: the soap stood on the table top (what the world has
+    under the point asked for), pushed 5 cm by the force-controlled sphere while the world's lid
+    motor is held (its ctrl first, the sphere's after), ends at its goal and still on the table."""
+    from dano.trajopt.push import PushTask, default_options, push_problem, solve_push
+
+    world = Path(_world(tmp_path))  # the table, the floor and the lid (its motor): no crate nor shelf to slow it
+    text = world.read_text()
+    for name in ("shelf", "crate"):
+        start = text.index(f'<body name="{name}"')
+        text = text[:start] + text[text.index("</body>", start) + len("</body>") :]
+    world.write_text(text)
+    push = push_problem(soap, "sphere", PushTask(goal=(0.05, 0.0), horizon=8), world=world, at=(-0.15, 0.1))
+    a = push.sim.world.dano_qpos[0]
+    assert push.sim.model.nu == 4 and push.full_ctrl(jnp.ones(3)).tolist() == [0.0, 1.0, 1.0, 1.0]
+    assert push.x0[a + 2] == pytest.approx(TOP + 0.015, abs=1e-3)  # at rest on the table top
+    result = solve_push(push, default_options("sphere"), progress=False)
+    end = np.asarray(result.replay.qpos[-1, a : a + 3])
+    assert result.final_error_m < 3e-3 and result.replay_gap_m < 1e-9
+    np.testing.assert_allclose(end[:2], push.goal_world, atol=3e-3)
+    assert end[2] == pytest.approx(TOP + 0.015, abs=2e-3)
+
+
+def test_a_push_where_the_world_has_nothing_is_a_named_error(soap, tmp_path, capsys):
+    from dano.cli import main
+    from dano.trajopt.pieces import TrajoptError
+    from dano.trajopt.push import PushTask, push_problem
+
+    world = _world(tmp_path)
+    with pytest.raises(TrajoptError, match=r"nothing under \(5, 5\) to stand the object on"):
+        push_problem(soap, "sphere", PushTask(goal=(0.05, 0.0), horizon=4), world=world, at=(5.0, 5.0))
+    (tmp_path / "bad.xml").write_text("<mujoco><worldbody><geom type='box'/></worldbody>")
+    with pytest.raises(TrajoptError, match="MuJoCo cannot load the world"):
+        push_problem(soap, "sphere", PushTask(goal=(0.05, 0.0), horizon=4), world=tmp_path / "bad.xml")
+    assert main(["trajopt", "push", "--world", str(tmp_path / "missing.xml")]) == 2
+    assert "argument --world: no file" in capsys.readouterr().err

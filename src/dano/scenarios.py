@@ -61,6 +61,45 @@ def push_scene(
     )  # fmt: skip
 
 
+class WorldError(ValueError):
+    """A scene that cannot be placed in an MJCF world as asked."""
+
+
+def in_world(scene: Scene, world: str | Path, at: tuple[float, float] = (0.0, 0.0)) -> tuple[Scene, float]:
+    """A scene built on the plane z = 0 (its DANOs, primitives and robot) moved onto whatever the
+    MJCF `world` has under the point `at` (x, y; a table's top, its floor), in that world (its own
+    floor instead of the scene's ground). Returns the scene and the height of that surface (m).
+
+    Raises:
+        WorldError: nothing of the world is under `at`, or the world cannot be loaded.
+    """
+    import mujoco
+
+    try:
+        model = mujoco.MjModel.from_xml_path(str(world))
+    except Exception as e:  # MuJoCo raises ValueError with its parser's message
+        raise WorldError(f"{world}: MuJoCo cannot load the world: {str(e).splitlines()[0]}") from None
+    data = mujoco.MjData(model)
+    mujoco.mj_forward(model, data)
+    tops = data.geom_xpos[:, 2] + model.geom_rbound
+    high = float(np.max(tops[model.geom_rbound > 0], initial=0.0)) + 1.0
+    geom = np.zeros(1, np.int32)
+    start, ray = np.array([at[0], at[1], high]), np.array([0.0, 0.0, -1.0])
+    down = mujoco.mj_ray(model, data, start, ray, None, 1, -1, geom)  # pyright: ignore[reportAttributeAccessIssue]
+    if down < 0:
+        raise WorldError(f"{world}: nothing under ({at[0]:g}, {at[1]:g}) to stand the object on")
+    top = high - float(down)
+    shift = np.array([at[0], at[1], top])
+    moved = lambda pos: tuple(float(v) for v in np.asarray(pos, float) + shift)  # noqa: E731
+    bodies = tuple(dataclasses.replace(b, pos=moved(b.pos)) for b in scene.bodies)
+    prims = tuple(dataclasses.replace(p, pos=moved(p.pos)) for p in scene.primitives)
+    robot = None if scene.robot is None else dataclasses.replace(scene.robot, base_pos=moved(scene.robot.base_pos))
+    scene = dataclasses.replace(
+        scene, bodies=bodies, primitives=prims, robot=robot, mjcf=str(world), ground_height=None
+    )
+    return scene, top
+
+
 @dataclasses.dataclass(frozen=True)
 class PushPlan:
     """The pushes of an experiment: the scene at the camera's rate with the DANO at rest, the

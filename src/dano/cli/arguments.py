@@ -60,6 +60,13 @@ def _float(low: float | None = None, strict: bool = False):
 _POSITIVE = _float(0.0, strict=True)
 
 
+def _existing(text: str) -> str:
+    """An input file that exists."""
+    if not Path(text).is_file():
+        raise UsageError(f"no file {text!r}")
+    return text
+
+
 def _output(*suffixes: str):
     """An output file: its folder exists, it is not a folder, and (if given) its suffix is allowed.
     Checked when the command line is parsed, before any work, so nothing is half done."""

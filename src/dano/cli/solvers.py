@@ -10,6 +10,7 @@ from dano.cli.arguments import (
     PLOT,
     VIDEO,
     _checked,
+    _existing,
     _float,
     _frames,
     _gravity,
@@ -79,6 +80,9 @@ def _add_trajopt(sub) -> None:
     t.add_argument("--dano", help="the object, a .dano.npz (default: the Stanford bunny, 0.5 kg, 200 points)")
     t.add_argument("--goal", type=_checked(_vector_part), nargs="+", default=[(0.1,), (0.0,)], metavar="X,Y",
                    help="where the object should end, m, relative to where it rests (default 0.1 0)")  # fmt: skip
+    t.add_argument("--world", type=_checked(_existing), help="an MJCF world to push in (its table, its actuators)")
+    t.add_argument("--at", type=_checked(_vector_part), nargs="+", default=[(0.0,), (0.0,)], metavar="X,Y",
+                   help="where in the world the object starts, on what is under it (default 0 0)")  # fmt: skip
     t.add_argument("--horizon", type=_int(1), default=10, help="frames (default 10)")
     t.add_argument("--dt", type=_POSITIVE, default=0.08, help="seconds per frame (default 0.08)")
     t.add_argument("--friction", type=_float(0.0), default=0.3)
@@ -203,7 +207,8 @@ def _trajopt(args: argparse.Namespace) -> None:
     obj = load_dano(args.dano) if args.dano else _default_bunny()
     goal_as_constraint = False if args.goal_cost else None  # None: the robot's default
     task = PushTask(goal=goal, horizon=args.horizon, dt=args.dt, goal_as_constraint=goal_as_constraint)
-    push = push_problem(obj, args.robot, task, friction=args.friction)
+    x0, y0 = _vector(args.at, 2, "--at", "X,Y") if args.world else (0.0, 0.0)
+    push = push_problem(obj, args.robot, task, friction=args.friction, world=args.world, at=(x0, y0))
     options = dataclasses.replace(default_options(args.robot), max_iterations=args.max_iterations)
     result = solve_push(push, options, progress=not args.json)
     if args.video:

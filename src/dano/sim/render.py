@@ -202,8 +202,8 @@ def draw_frame(renderer, model, data, qpos, camera, sim, clouds, arrows=None) ->
         if width[0] > 0 and scene.ngeom < scene.maxgeom:
             g = scene.geoms[scene.ngeom]
             mujoco.mjv_initGeom(g, mujoco.mjtGeom.mjGEOM_ARROW, np.zeros(3), np.zeros(3), np.eye(3).ravel(), ARROW_RGBA)
-            mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_ARROW, width[0], start, end)
-            g.category = mujoco.mjtCatBit.mjCAT_DECOR
+            mujoco.mjv_connector(g, mujoco.mjtGeom.mjGEOM_ARROW, width[0], start, end)  # pyright: ignore[reportAttributeAccessIssue]
+            g.category = mujoco.mjtCatBit.mjCAT_DECOR  # pyright: ignore[reportAttributeAccessIssue]
             scene.ngeom += 1
     return renderer.render().copy()
 

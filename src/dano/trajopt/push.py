@@ -11,14 +11,16 @@ the end effector above the ground.
 """
 
 import dataclasses
+import functools
 from collections.abc import Callable
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dano import validate as V
-from dano.scenarios import push_scene
+from dano.scenarios import WorldError, in_world, push_scene
 from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Integrator, Scene
 from dano.sim.step import Trajectory, scaled_model, step
@@ -43,6 +45,8 @@ class PushProblem:
     ee_goal: np.ndarray
     effector: Callable
     """x -> (end effector position (3,), its velocity terms)."""
+    ctrl: Callable
+    """u (..., m) -> MuJoCo's `ctrl` (..., nu): a world's own actuators held, then the robot's."""
 
     @property
     def robot(self) -> str:
@@ -53,17 +57,25 @@ class PushProblem:
         return jnp.asarray(x)[..., a : a + 3]
 
     def full_ctrl(self, u) -> jax.Array:
-        return self.pusher.full_ctrl(u)
+        return self.ctrl(u)
 
 
 def push_problem(
-    dano: DANO, robot: "str | AbstractPusher" = "sphere", task: PushTask | None = None, friction: float = 0.3
+    dano: DANO,
+    robot: "str | AbstractPusher" = "sphere",
+    task: PushTask | None = None,
+    friction: float = 0.3,
+    world: str | Path | None = None,
+    at: tuple[float, float] = (0.0, 0.0),
 ) -> PushProblem:
     """The push of `dano` by `robot` ("sphere", "panda" or any `AbstractPusher`) as an
-    `OptimalControlProblem`.
+    `OptimalControlProblem`: on the plane z = 0, or in the MJCF `world` on whatever it has under
+    the point `at` (x, y: a table's top; `dano.scenarios.in_world`), the world's own actuators held
+    at their initial `ctrl` (its keyframe's) and its bodies moving as MuJoCo moves them.
 
     Raises:
-        TrajoptError: an unknown robot, a goal too close to push to, a bad horizon or integrator.
+        TrajoptError: an unknown robot, a goal too close to push to, a bad horizon or integrator,
+            a world with nothing under `at`.
     """
     task = PushTask() if task is None else task
     robot = pusher(robot)
@@ -80,8 +92,25 @@ def push_problem(
     if not substep > 0:
         raise TrajoptError(f"substep must be > 0, got {substep}")
     scene = _scene(dano, robot, goal / distance, friction, task.dt, substep, integrator)
-    sim = _settled(Simulation.from_scene(scene), task.horizon, robot.full_ctrl(robot.hold()))
-    return _assemble(robot, task, sim, goal)
+    floor = 0.0
+    if world is not None:
+        try:
+            scene, floor = in_world(scene, world, at)
+        except WorldError as e:
+            raise TrajoptError(str(e)) from None
+    sim = Simulation.from_scene(scene)
+    # The world's actuators come first in `ctrl`, held where the world starts them.
+    held = jnp.asarray(sim.data.ctrl[: sim.model.nu - robot.full_ctrl(robot.hold()).shape[-1]])
+    full = functools.partial(_full_ctrl, robot, held)
+    sim = _settled(sim, task.horizon, full(robot.hold()))
+    return _assemble(robot, task, sim, goal, full, floor)
+
+
+def _full_ctrl(robot: AbstractPusher, held: jax.Array, u: jax.Array) -> jax.Array:
+    if not held.shape[0]:
+        return robot.full_ctrl(u)
+    ctrl = robot.full_ctrl(u)
+    return jnp.concatenate([jnp.broadcast_to(held, (*ctrl.shape[:-1], held.shape[0])), ctrl], axis=-1)
 
 
 SETTLE_S = 0.5
@@ -125,7 +154,11 @@ def _scene(
     return at_interval(scene, dt)
 
 
-def _assemble(robot: AbstractPusher, task: PushTask, sim: Simulation, goal: np.ndarray) -> PushProblem:
+def _assemble(
+    robot: AbstractPusher, task: PushTask, sim: Simulation, goal: np.ndarray, full: Callable, floor: float
+) -> PushProblem:
+    """The problem; `full` maps the controls to MuJoCo's `ctrl`, `floor` is the height the
+    clearance is measured from (m)."""
     world, params, model = sim.world, sim.params, sim.model
     m = scaled_model(world, params, sim.mjx_model)
     d0 = sim.data
@@ -136,7 +169,7 @@ def _assemble(robot: AbstractPusher, task: PushTask, sim: Simulation, goal: np.n
     pm = robot.model(sim, task, goal)
 
     def dynamics(x, u, t):
-        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=robot.full_ctrl(u))
+        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=full(u))
         d = step(world, params, m, d)
         return jnp.concatenate([d.qpos, d.qvel])
 
@@ -159,13 +192,13 @@ def _assemble(robot: AbstractPusher, task: PushTask, sim: Simulation, goal: np.n
         return c
 
     def constraints(x, u, t):
-        return jnp.concatenate([pm.input_limits(x, u), task.clearance - pm.lowest(x)])
+        return jnp.concatenate([pm.input_limits(x, u), task.clearance + floor - pm.lowest(x)])
 
     terminal = (lambda x: x[a : a + 2] - goal_j) if goal_is_constraint else None
     options = compiler_options(world)
     problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal, options)
     first = _warm_start(problem, x0, [pm.guess(s) for s in pm.scales], lambda x: x[a : a + 2] - goal_j)
-    return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, pm.effector)
+    return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, pm.effector, full)
 
 
 def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss) -> np.ndarray:
