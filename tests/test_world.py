@@ -191,3 +191,76 @@ def test_a_push_where_the_world_has_nothing_is_a_named_error(soap, tmp_path, cap
         push_problem(soap, "sphere", PushTask(goal=(0.05, 0.0), horizon=4), world=tmp_path / "bad.xml")
     assert main(["trajopt", "push", "--world", str(tmp_path / "missing.xml")]) == 2
     assert "argument --world: no file" in capsys.readouterr().err
+
+
+RAMP = """<mujoco><asset><hfield name="ramp" nrow="2" ncol="2" size="0.5 0.3 0.2 0.05" elevation="0 1 0 1"/></asset>
+<worldbody><geom name="ramp" type="hfield" hfield="ramp" pos="0 0 0.1"/>
+<geom name="post" type="cylinder" size="0.05 0.1" pos="1 0 0.1"/></worldbody></mujoco>"""
+
+
+@pytest.mark.slow
+def test_a_dano_slides_down_a_height_field_at_g_sin_minus_mu_cos_and_rests_on_a_cylinder(soap, tmp_path):
+    """The world's height field (a 2 x 2 grid rising 0.2 m over 1 m: a plane at atan 0.2 = 11.3°)
+    and an upright cylinder: the soap placed on the slope with mu = 0.1 < tan slides down at
+    g (sin - mu cos) (the closed form); another on the cylinder's flat top rests there."""
+    from dano.contact import ContactParams
+    from dano.viewer import scene_solids
+
+    (tmp_path / "ramp.xml").write_text(RAMP)
+    th, mu, x0 = np.arctan(0.2), 0.1, 0.3
+    normal = np.array([-np.sin(th), 0.0, np.cos(th)])
+    lift = -float(np.min(np.asarray(soap.body_points)[:, 2]))
+    on_slope = np.array([x0, 0.0, 0.1 + 0.2 * (x0 + 0.5)]) + (lift + 1e-4) * normal
+    bodies = (
+        DanoBody("slider", soap, pos=tuple(on_slope), quat=(np.cos(-th / 2), 0.0, np.sin(-th / 2), 0.0)),
+        DanoBody("resting", soap, pos=(1.0, 0.0, 0.2 + lift + 1e-4)),
+    )
+    scene = Scene(mjcf=str(tmp_path / "ramp.xml"), ground_height=None, duration=0.6, bodies=bodies,
+                  contact=ContactParams(sliding_friction=mu))  # fmt: skip
+    sim = Simulation.from_scene(scene)
+    assert [link.kind for link in sim.world.links] == ["hfield", "cylinder"]
+    traj = sim.run()
+    q, v = np.asarray(traj.qpos), np.asarray(traj.qvel)
+    down = np.array([-np.cos(th), 0.0, -np.sin(th)])
+    accel = np.polyfit(np.arange(100, 300) * 0.002, v[100:300, :3] @ down, 1)[0]
+    np.testing.assert_allclose(accel, 9.81 * (np.sin(th) - mu * np.cos(th)), rtol=2e-3)
+    assert q[-1, 9] == pytest.approx(0.2 + lift, abs=1e-3) and np.abs(v[-1, 6:12]).max() < 1e-3
+    solids = {s.name: s for s in scene_solids(sim.model, q[-1:])}  # in the viewer: the ramp's surface, the post
+    np.testing.assert_allclose(np.ptp(solids["ramp"].vertices, axis=0), [1.0, 0.6, 0.2], atol=1e-6)
+    np.testing.assert_allclose(np.ptp(solids["post"].vertices, axis=0), [0.1, 0.1, 0.2], atol=1e-6)
+    # d(where the slider is after 0.12 s)/d(friction, its initial speed along the slope) through the
+    # height field's contact, against central differences in float64.
+    sim = Simulation.from_scene(dataclasses.replace(scene, bodies=bodies[:1]))  # the slider alone
+    a, va = sim.world.dano_qpos[0], sim.world.dano_qvel[0]
+
+    def final(theta):
+        contact = tuple(dataclasses.replace(c, sliding_friction=theta[0]) for c in sim.params.contact)
+        d = sim.data.replace(qvel=sim.data.qvel.at[va : va + 3].set(theta[1] * jnp.asarray(down)))
+        return rollout(sim.world, dataclasses.replace(sim.params, contact=contact), sim.mjx_model, d, 60).qpos[-1, a]
+
+    theta = (mu, 0.3)
+    f = jax.jit(final)
+    fd = np.asarray(partial_differences(lambda *t: f(jnp.asarray(t)), theta, rel_step=1e-5))
+    J = np.asarray(jax.jit(jax.grad(final))(jnp.asarray(theta)))
+    np.testing.assert_allclose(J, fd, rtol=2e-3)
+    assert fd[0] > 0.01  # more friction: it ends higher up the slope (at larger x)
+
+
+def test_the_cylinder_signed_distance_matches_a_fine_mesh_of_it():
+    """Against trimesh's signed distance to a 512-sided cylinder (an independent computation), at
+    random points inside, beside, above and off the rims of a cylinder turned off the axes."""
+    import trimesh
+
+    from dano.contact import Cylinder, signed_distance
+    from dano.math import quat_to_mat
+
+    r, half = 0.05, 0.08
+    R = np.asarray(quat_to_mat(jnp.asarray([0.8, 0.3, -0.4, 0.33]) / np.linalg.norm([0.8, 0.3, -0.4, 0.33])))
+    centre = np.array([0.1, -0.2, 0.3])
+    mesh = trimesh.creation.cylinder(radius=r, height=2 * half, sections=512)
+    local = np.random.default_rng(0).uniform(-0.12, 0.12, size=(400, 3))
+    expected = -trimesh.proximity.signed_distance(mesh, local)  # trimesh: positive inside
+    world = local @ R.T + centre
+    got = signed_distance(Cylinder(jnp.asarray(centre), jnp.asarray(R), jnp.asarray(r), jnp.asarray(half)),
+                          jnp.asarray(world.T))  # fmt: skip
+    np.testing.assert_allclose(np.asarray(got), expected, atol=r * 5e-4)  # the mesh: within 25 µm

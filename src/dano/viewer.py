@@ -148,8 +148,8 @@ def _segments(frame_arrows: np.ndarray) -> list:
 
 def scene_solids(model, qpos: np.ndarray, skip_bodies=()) -> tuple[Solid, ...]:
     """Every visible geom of a MuJoCo `model` (boxes, spheres, capsules, cylinders, ellipsoids,
-    meshes; planes are the view's floor grid) but those of `skip_bodies` (names: the DANOs), with
-    its poses over the states `qpos` (T, nq)."""
+    meshes, height fields' surfaces; planes are the view's floor grid) but those of `skip_bodies`
+    (names: the DANOs), with its poses over the states `qpos` (T, nq)."""
     import mujoco
     import trimesh
 
@@ -162,6 +162,7 @@ def scene_solids(model, qpos: np.ndarray, skip_bodies=()) -> tuple[Solid, ...]:
         int(G.mjGEOM_CYLINDER): lambda s, _: trimesh.creation.cylinder(radius=s[0], height=2 * s[1], sections=16),
         int(G.mjGEOM_ELLIPSOID): lambda s, _: trimesh.creation.icosphere(2).apply_scale(s),
         int(G.mjGEOM_MESH): lambda _, g: _mesh_of(model, g),
+        int(G.mjGEOM_HFIELD): lambda _, g: _height_field_of(model, g),
     }
     geoms = [
         g
@@ -190,6 +191,21 @@ def _mesh_of(model, g: int):
     m = model.geom_dataid[g]
     v0, nv, f0, nf = model.mesh_vertadr[m], model.mesh_vertnum[m], model.mesh_faceadr[m], model.mesh_facenum[m]
     return trimesh.Trimesh(model.mesh_vert[v0 : v0 + nv], model.mesh_face[f0 : f0 + nf], process=False)
+
+
+def _height_field_of(model, g: int):
+    """A height field's surface as a triangle mesh (its nodes, two triangles per cell)."""
+    import trimesh
+
+    h = model.geom_dataid[g]
+    rows, cols, adr = model.hfield_nrow[h], model.hfield_ncol[h], model.hfield_adr[h]
+    rx, ry, top, _ = model.hfield_size[h]
+    z = np.asarray(model.hfield_data[adr : adr + rows * cols], float).reshape(rows, cols) * top
+    x, y = np.meshgrid(np.linspace(-rx, rx, cols), np.linspace(-ry, ry, rows))
+    k = np.arange(rows * cols).reshape(rows, cols)
+    a, b, c, d = k[:-1, :-1].ravel(), k[:-1, 1:].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, d], axis=1), np.stack([a, d, c], axis=1)])
+    return trimesh.Trimesh(np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1), faces, process=False)
 
 
 def view_simulation(path: str | Path, sim, traj, contacts=None, **kwargs) -> Path:

@@ -3,7 +3,9 @@
 from dano.contact.overlap import (
     Box,
     Capsule,
+    Cylinder,
     HalfSpace,
+    HeightField,
     Overlap,
     Polytope,
     Sphere,
@@ -13,6 +15,7 @@ from dano.contact.overlap import (
 from dano.contact.wrench import ContactParams, Wrench, contact_wrench, coulomb_direction, sliding_force, spin_torque
 
 __all__ = [
-    "Box", "Capsule", "ContactParams", "HalfSpace", "Overlap", "Polytope", "Sphere", "Wrench", "contact_wrench",
+    "Box", "Capsule", "ContactParams", "Cylinder", "HalfSpace", "HeightField", "Overlap", "Polytope", "Sphere",
+    "Wrench", "contact_wrench",
     "coulomb_direction", "expected_overlap", "signed_distance", "sliding_force", "spin_torque",
 ]  # fmt: skip

@@ -61,7 +61,31 @@ class Polytope(eqx.Module):
     offsets: Float[Array, " k"]
 
 
-Primitive = HalfSpace | Sphere | Capsule | Box | Polytope
+class Cylinder(eqx.Module):
+    """A solid cylinder of `radius` and half length `half_length` along its local z, centred at
+    `center`, axes the columns of `rotation` (m)."""
+
+    center: Float[Array, " 3"]
+    rotation: Float[Array, "3 3"]
+    radius: Float[Array, ""]
+    half_length: Float[Array, ""]
+
+
+class HeightField(eqx.Module):
+    """MuJoCo's height field: the solid below the surface z = heights(x, y) (bilinear between the
+    grid's nodes, rows along y from -half[1] to half[1], columns along x from -half[0] to half[0])
+    and above z = -base, in its own frame (`center`, `rotation`). Its signed distance is the
+    vertical one, z - heights(x, y): exact in sign (what is inside), a depth scaled by the cosine of
+    the slope, and its gradient the surface's normal; beyond the grid's sides there is nothing."""
+
+    center: Float[Array, " 3"]
+    rotation: Float[Array, "3 3"]
+    heights: Float[Array, "rows cols"]
+    half: Float[Array, " 2"]
+    base: Float[Array, ""]
+
+
+Primitive = HalfSpace | Sphere | Capsule | Box | Polytope | Cylinder | HeightField
 
 
 def signed_distance(shape: Primitive, y: Float[Array, "3 n"]) -> Float[Array, " n"]:
@@ -83,7 +107,31 @@ def signed_distance(shape: Primitive, y: Float[Array, "3 n"]) -> Float[Array, " 
         # (exact off the faces), which is all the inside test and the normal need.
         local = shape.rotation.T @ (y - shape.center[:, None])
         return jnp.max(shape.normals @ local - shape.offsets[:, None], axis=0)
+    if isinstance(shape, Cylinder):
+        local = shape.rotation.T @ (y - shape.center[:, None])
+        q = jnp.stack([safe_norm(local[:2], axis=0) - shape.radius, jnp.abs(local[2]) - shape.half_length])
+        return safe_norm(jnp.maximum(q, 0.0), axis=0) + jnp.minimum(jnp.max(q, axis=0), 0.0)
+    if isinstance(shape, HeightField):
+        return _height_field_distance(shape, shape.rotation.T @ (y - shape.center[:, None]))
     raise TypeError(f"no signed distance for {type(shape).__name__}")
+
+
+FAR = 1.0
+"""m: the signed distance given to a point beyond a height field's sides (nothing there)."""
+
+
+def _height_field_distance(shape: HeightField, local: Float[Array, "3 n"]) -> Float[Array, " n"]:
+    rows, cols = shape.heights.shape
+    u = (local[0] / shape.half[0] + 1.0) * 0.5 * (cols - 1)  # column coordinate
+    v = (local[1] / shape.half[1] + 1.0) * 0.5 * (rows - 1)  # row coordinate
+    over = (u >= 0) & (u <= cols - 1) & (v >= 0) & (v <= rows - 1)
+    vi, uj = jnp.clip(jnp.floor(v), 0.0, rows - 2.0), jnp.clip(jnp.floor(u), 0.0, cols - 2.0)
+    fv, fu = jnp.clip(v - vi, 0.0, 1.0), jnp.clip(u - uj, 0.0, 1.0)
+    i, j = vi.astype(int), uj.astype(int)
+    h = shape.heights
+    top = (1 - fv) * ((1 - fu) * h[i, j] + fu * h[i, j + 1]) + fv * ((1 - fu) * h[i + 1, j] + fu * h[i + 1, j + 1])
+    inside = jnp.maximum(local[2] - top, -local[2] - shape.base)
+    return jnp.where(over, inside, FAR)
 
 
 def outward_normal(shape: Primitive, y: Float[Array, " 3"]) -> Float[Array, " 3"]:

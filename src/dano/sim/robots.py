@@ -127,6 +127,8 @@ _LINK_KINDS = {
     mujoco.mjtGeom.mjGEOM_SPHERE: "sphere",
     mujoco.mjtGeom.mjGEOM_CAPSULE: "capsule",
     mujoco.mjtGeom.mjGEOM_MESH: "mesh",
+    mujoco.mjtGeom.mjGEOM_CYLINDER: "cylinder",
+    mujoco.mjtGeom.mjGEOM_HFIELD: "hfield",
 }
 
 
@@ -138,8 +140,8 @@ def link_geom(model: mujoco.MjModel, g: int) -> LinkGeom:
     kind = _LINK_KINDS.get(mujoco.mjtGeom(model.geom_type[g]))
     if kind is None:
         name, kind_name = model.geom(g).name or f"number {g}", mujoco.mjtGeom(model.geom_type[g]).name
-        raise SceneError(f"geom {name} of type {kind_name} cannot touch DANOs (box, sphere, capsule, convex mesh "
-                         "and plane can): give it contype=0 conaffinity=0")  # fmt: skip
+        raise SceneError(f"geom {name} of type {kind_name} cannot touch DANOs (box, sphere, capsule, cylinder, "
+                         "convex mesh, plane and height field can): give it contype=0 conaffinity=0")  # fmt: skip
     size = tuple(float(v) for v in model.geom_size[g])
     normals = offsets = None
     if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE:  # z <= 0 in its frame; no broad phase
@@ -151,6 +153,13 @@ def link_geom(model: mujoco.MjModel, g: int) -> LinkGeom:
         planes = np.unique(np.round(ConvexHull(vert).equations, 6), axis=0)  # n . x + c <= 0 inside
         normals, offsets = jnp.asarray(planes[:, :3]), jnp.asarray(-planes[:, 3])
         radius = float(np.max(np.linalg.norm(vert, axis=1)))
+    elif kind == "hfield":  # MuJoCo's size (x, y, top, base): heights = data (0..1) x top
+        h = model.geom_dataid[g]
+        rows, cols, adr = model.hfield_nrow[h], model.hfield_ncol[h], model.hfield_adr[h]
+        size = tuple(float(v) for v in model.hfield_size[h])
+        heights = np.asarray(model.hfield_data[adr : adr + rows * cols], float).reshape(rows, cols) * size[2]
+        radius = float(np.linalg.norm([size[0], size[1], max(size[2], size[3])]))
+        return LinkGeom(g, body, int(model.body_rootid[body]), kind, size, radius, heights=jnp.asarray(heights))
     else:
         radius = float(np.linalg.norm(model.geom_size[g])) + (size[1] if kind == "capsule" else 0.0)
     return LinkGeom(g, body, int(model.body_rootid[body]), kind, size, radius, normals, offsets)

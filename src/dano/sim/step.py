@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from dano._mjx import mjx
-from dano.contact import Box, Capsule, HalfSpace, Polytope, Sphere
+from dano.contact import Box, Capsule, Cylinder, HalfSpace, HeightField, Polytope, Sphere
 from dano.contact.overlap import Primitive
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
@@ -85,6 +85,11 @@ def link_shape(link: LinkGeom, f: Frame):
     if link.kind == "capsule":
         axis = f.R[:, 2] * link.size[1]
         return Capsule(f.x - axis, f.x + axis, jnp.asarray(link.size[0]))
+    if link.kind == "cylinder":
+        return Cylinder(f.x, f.R, jnp.asarray(link.size[0]), jnp.asarray(link.size[1]))
+    if link.kind == "hfield":
+        assert link.heights is not None  # `link_geom` sets them for a height field
+        return HeightField(f.x, f.R, link.heights, jnp.asarray(link.size[:2]), jnp.asarray(link.size[3]))
     return Box(f.x, f.R, jnp.asarray(link.size, dtype=float))
 
 

@@ -82,9 +82,10 @@ class PrimGeom:
 
 
 class LinkGeom(eqx.Module):
-    """A robot collision geom seen by DANOs: MuJoCo geom and body ids, its kind ("box", "sphere",
-    "capsule" or "mesh"), size, and for a mesh its convex hull as planes (normals (k, 3), offsets (k,),
-    geom frame). `radius` bounds the geom around its centre (broad phase)."""
+    """A robot's or a world's collision geom seen by DANOs: MuJoCo geom and body ids, its kind
+    ("box", "sphere", "capsule", "cylinder", "mesh" or "hfield"), size, for a mesh its convex hull as
+    planes (normals (k, 3), offsets (k,), geom frame), for a height field its heights (rows, cols;
+    m). `radius` bounds the geom around its centre (broad phase)."""
 
     geom: int = eqx.field(static=True)
     body: int = eqx.field(static=True)
@@ -94,6 +95,7 @@ class LinkGeom(eqx.Module):
     radius: float = eqx.field(static=True)
     normals: Float[Array, "k 3"] | None = None
     offsets: Float[Array, " k"] | None = None
+    heights: Float[Array, "rows cols"] | None = None
 
 
 class World(eqx.Module):
