@@ -110,10 +110,10 @@ def test_bad_worlds_are_named_errors(soap, tmp_path):
         Simulation.from_scene(Scene(mjcf=str(tmp_path / "missing.xml"), bodies=body))
     with pytest.raises(SceneError, match="a robot or an MJCF world, not both"):
         Scene(mjcf=_world(tmp_path), robot=Robot(str(tmp_path / "world.xml")), bodies=body)
-    (tmp_path / "can.xml").write_text('<mujoco><worldbody><geom name="can" type="cylinder" size="0.05 0.1"/>'
+    (tmp_path / "egg.xml").write_text('<mujoco><worldbody><geom name="egg" type="ellipsoid" size="0.05 0.04 0.1"/>'
                                       "</worldbody></mujoco>")  # fmt: skip
-    with pytest.raises(SceneError, match="geom can of type mjGEOM_CYLINDER cannot touch DANOs"):
-        Simulation.from_scene(Scene(mjcf=str(tmp_path / "can.xml"), bodies=body))
+    with pytest.raises(SceneError, match="geom egg of type mjGEOM_ELLIPSOID cannot touch DANOs"):
+        Simulation.from_scene(Scene(mjcf=str(tmp_path / "egg.xml"), bodies=body))
     (tmp_path / "broken.xml").write_text("<mujoco><worldbody><body></mujoco>")
     with pytest.raises(SceneError, match="MuJoCo cannot load it"):
         Simulation.from_scene(Scene(mjcf=str(tmp_path / "broken.xml"), bodies=body))
