@@ -36,6 +36,7 @@ def test_demo_writes_a_bunny_dano_and_its_picture(tmp_path, capsys):
     assert push["converged"] and push["final_error_m"] < 0.01 and push["max_violation"] <= 1e-4
     assert push["replay_gap_m"] < 1e-9
     assert (tmp_path / "push.mp4").stat().st_size > 10_000
+    assert sum(push["frame_covered"].values()) > 0.05, push["frame_covered"]  # the pushed bunny, framed
     # The report: one page holding every picture and video, shown by a browser with no console message;
     # the bunny's points (coloured by density) are in view.
     text = (tmp_path / "report.html").read_text()

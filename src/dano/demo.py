@@ -187,7 +187,8 @@ def identification_demo(out: Path, noise: float = 1e-3, seed: int = 0) -> dict:
 def push_demo(out: Path, seed: int = 0) -> dict:
     """Sim-to-robot (paper Sec. V-B): a sphere end effector pushes a 100-point bunny 8 cm along x,
     by constrained iLQR through the simulator; the open-loop replay rendered to MP4."""
-    from dano.trajopt.push import PushTask, push_problem, render_push, solve_push
+    from dano.sim.render import coverage
+    from dano.trajopt.push import PushTask, push_problem, render_push, replay_frames, solve_push
 
     bunny = build_dano(mesh_field(bunny_mesh(), resolution=48, progress=False), n_points=100, mass=0.5, seed=seed)
     push = push_problem(bunny, "sphere", PushTask(goal=(0.08, 0.0), horizon=8))
@@ -199,7 +200,9 @@ def push_demo(out: Path, seed: int = 0) -> dict:
         f"{result.final_error_m * 1e3:.2f} mm, max violation {s.max_violation:.1e}, {s.seconds:.1f} s (with JIT)"
     )
     print(f"wrote {video}")
-    return {"trajopt_push": {k: v for k, v in result.summary().items() if k != "message"}}
+    summary = {k: v for k, v in result.summary().items() if k != "message"}
+    summary["frame_covered"] = coverage(*replay_frames(push, result)[:2])  # the bunny, in the last picture
+    return {"trajopt_push": summary}
 
 
 def _table(dano, s: dict) -> str:

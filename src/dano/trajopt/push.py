@@ -284,11 +284,23 @@ def render_push(
     style: str = "surface",
     contacts: bool = False,
 ):
-    """Renders the open-loop replay with `frames_per_step` video frames per control step (the same
-    substeps, regrouped: a control is held over its step), at the real-time frame rate; `style` as
-    in `dano.sim.render.render_video`; `contacts`: the contact forces drawn as arrows."""
+    """Renders the open-loop replay (`replay_frames`) at the real-time frame rate; `style` as in
+    `dano.sim.render.render_video`; `contacts`: the contact forces drawn as arrows."""
     from dano.sim.render import render_video
 
+    sim, traj, ctrl = replay_frames(push, result, frames_per_step)
+    forces = None
+    if contacts:
+        from dano.sim.contacts import contact_forces
+
+        forces = contact_forces(sim, traj, ctrl=ctrl)
+    fps = 1.0 / sim.scene.timestep  # real time: a frame per frame of the replay
+    return render_video(sim, traj, path, fps=fps, progress=progress, style=style, contacts=forces)
+
+
+def replay_frames(push: PushProblem, result: PushResult, frames_per_step: int = 4):
+    """The open-loop replay with `frames_per_step` frames per control step (the same substeps,
+    regrouped: a control is held over its step): its simulation, trajectory and per-frame ctrl."""
     scene = push.sim.scene
     assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
     while scene.substeps % frames_per_step:  # the largest count up to the one asked that divides the substeps
@@ -298,11 +310,4 @@ def render_push(
     )
     sim = Simulation.from_scene(fine)
     ctrl = jnp.repeat(push.full_ctrl(jnp.asarray(result.solution.controls)), frames_per_step, axis=0)
-    traj = sim.run(push.task.horizon * frames_per_step, ctrl=ctrl)
-    forces = None
-    if contacts:
-        from dano.sim.contacts import contact_forces
-
-        forces = contact_forces(sim, traj, ctrl=ctrl)
-    fps = frames_per_step / push.task.dt
-    return render_video(sim, traj, path, fps=fps, progress=progress, style=style, contacts=forces)
+    return sim, sim.run(push.task.horizon * frames_per_step, ctrl=ctrl), ctrl
