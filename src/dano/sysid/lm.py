@@ -96,9 +96,11 @@ class ProjectedLM(AbstractIterativeSolver[LMState]):
             step = _lm_step(point.H, point.g, free, lam)
             for alpha in (1.0, 1 / 3, 1 / 9, 1 / 27):
                 y_try = np.clip(point.y + alpha * step, self.objective.y_lo, self.objective.y_hi)
-                loss_try = self.objective.loss_at(y_try)
-                if np.isfinite(loss_try) and loss_try <= point.loss + 1e-4 * point.g @ (y_try - point.y):
-                    return LMState(Point(y_try, *self.objective.evaluate(y_try)), point, lam / 3)
+                # The normal equations at every trial, not the loss alone: an accepted trial (most
+                # are) needs them next, and the loss alone would be a second compiled program.
+                tried = Point(y_try, *self.objective.evaluate(y_try))
+                if np.isfinite(tried.loss) and tried.loss <= point.loss + 1e-4 * point.g @ (y_try - point.y):
+                    return LMState(tried, point, lam / 3)
             lam = lam * 10
         return LMState(point, state.previous, lam, failed=True)
 
