@@ -153,13 +153,10 @@ def implicit_step(
     passes of the convex minimisation over each pair's active set, checked, or over all points),
     the reactions, then MuJoCo's step and the DANOs' own integration (`_integrate`).
     """
-    free = tuple(k for k, p in enumerate(world.prims) if p.moving)
-    f = _free_motion(world, params, m, d, free, external)
-    c = _contact_problem(world, params, m, d, mocap_vel, f, free)
+    free, f, c = _step_problem(world, params, m, d, mocap_vel, external)
     V_next, over, xfrc = untouched(c)
     if c.pair_list:
-        touching = jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in c.supports]))
-        V_next, over, xfrc = jax.lax.cond(touching, lambda: solved(c), lambda: untouched(c))
+        V_next, over, xfrc = jax.lax.cond(_touching(c), lambda: solved(c), lambda: untouched(c))
     if external is not None:
         keep = jnp.ones(xfrc.shape[0]).at[jnp.asarray(world.dano_body)].set(0.0)
         xfrc = xfrc + external * keep[:, None]
@@ -180,9 +177,7 @@ def implicit_contacts(
     """The contact of the implicit step from `d` (`implicit_step`'s arguments): per pair (`pairs`),
     its wrench on its DANO (P, 6: force, torque about the DANO's centre of mass; world) and where its
     normal force acts (P, 3; the DANO's centre where it does not touch)."""
-    free = tuple(k for k, p in enumerate(world.prims) if p.moving)
-    f = _free_motion(world, params, m, d, free, external)
-    c = _contact_problem(world, params, m, d, mocap_vel, f, free)
+    c = _step_problem(world, params, m, d, mocap_vel, external)[2]
     centres = jnp.stack([c.frames[i].x for i, _, _ in c.pair_list]) if c.pair_list else jnp.zeros((0, 3))
     none = (jnp.zeros((len(c.pair_list), 6)), centres)
     if not c.pair_list:
@@ -198,8 +193,19 @@ def implicit_contacts(
             points.append(at)
         return jnp.stack(wrenches), jnp.stack(points)
 
-    live = jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in c.supports]))
-    return jax.lax.cond(live, touching, lambda: none)
+    return jax.lax.cond(_touching(c), touching, lambda: none)
+
+
+def _step_problem(world: World, params: Params, m: mjx.Model, d: mjx.Data, mocap_vel, external):
+    """The step's moving primitives, free motion and contact problem."""
+    free = tuple(k for k, p in enumerate(world.prims) if p.moving)
+    f = _free_motion(world, params, m, d, free, external)
+    return free, f, _contact_problem(world, params, m, d, mocap_vel, f, free)
+
+
+def _touching(c: ContactProblem) -> Array:
+    """Whether any point of any pair is live where the free motion goes."""
+    return jnp.any(jnp.stack([jnp.any(active.live(sup, sup.s0)) for sup in c.supports]))
 
 
 class _Free(NamedTuple):
