@@ -2,7 +2,6 @@
 contacts kept; its geoms touch the DANOs through the DANO contact model."""
 
 import dataclasses
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +43,18 @@ def soap():
 def _world(tmp_path, keyframe: str = "") -> str:
     (tmp_path / "world.xml").write_text(WORLD.replace("KEYFRAME", keyframe))
     return str(tmp_path / "world.xml")
+
+
+def _still_world(tmp_path) -> str:
+    """The world's table and floor alone: nothing of it moves, so the step skips MuJoCo's (a world
+    body that moves costs an `mjx.step` per step: minutes for the slow tests that solve in it)."""
+    text = WORLD.replace("KEYFRAME", "")
+    for name in ("shelf", "crate", "lid"):
+        start = text.index(f'<body name="{name}"')
+        text = text[:start] + text[text.index("</body>", start) + len("</body>") :]
+    start = text.index("<actuator>")
+    (tmp_path / "still.xml").write_text(text[:start] + text[text.index("</actuator>") + len("</actuator>") :])
+    return str(tmp_path / "still.xml")
 
 
 def test_a_dano_slides_on_the_worlds_table_into_its_free_crate_while_the_lid_follows_its_motor(soap, tmp_path):
@@ -165,8 +176,8 @@ def test_friction_is_identified_from_a_slide_on_the_worlds_table(soap, tmp_path)
     from dano.sysid.experiments import slide_track
 
     body = DanoBody("object", soap, pos=(-0.25, 0.0, TOP + 0.015), vel=(1.0, 0.0, 0.0))
-    truth = Scene(
-        mjcf=_world(tmp_path), ground_height=None, contact=ContactParams(sliding_friction=0.4), bodies=(body,)
+    truth = Scene(  # on the world's table; its moving bodies left out (`_still_world`)
+        mjcf=_still_world(tmp_path), ground_height=None, contact=ContactParams(sliding_friction=0.4), bodies=(body,)
     )
     track = slide_track(truth, fps=120.0, n_frames=25, lead=2)
     guess = dataclasses.replace(truth, contact=ContactParams(sliding_friction=0.2))
@@ -179,19 +190,12 @@ def test_friction_is_identified_from_a_slide_on_the_worlds_table(soap, tmp_path)
 def test_a_sphere_pushes_the_dano_to_its_goal_on_the_worlds_table(soap, tmp_path):
     """Trajectory optimisation in the world: the soap stood on the table top (what the world has
     under the point asked for), pushed 5 cm by the force-controlled sphere, ends at its goal and
-    still on the table. The world here is its table and floor (nothing of it moves, so MuJoCo's step
-    is skipped: the lid's hinge would cost a `mjx.step` per step, 255 s instead of ~60 s in CI); a
-    world's own actuators are held first in `ctrl` (`_full_ctrl`, checked below)."""
+    still on the table. The world here is its table and floor (`_still_world`: with the lid's hinge,
+    255 s in CI instead of ~60 s); a world's own actuators are held first in `ctrl` (`_full_ctrl`,
+    checked below)."""
     import dano.trajopt.push as P
 
-    world = Path(_world(tmp_path))
-    text = world.read_text()
-    for name in ("shelf", "crate", "lid"):
-        start = text.index(f'<body name="{name}"')
-        text = text[:start] + text[text.index("</body>", start) + len("</body>") :]
-    world.write_text(
-        text.replace('<actuator><position name="lid_motor" joint="hinge" kp="2" kv="0.1"/></actuator>', "")
-    )
+    world = _still_world(tmp_path)
     push = P.push_problem(soap, "sphere", P.PushTask(goal=(0.05, 0.0), horizon=8), world=world, at=(-0.15, 0.1))
     a = push.sim.world.dano_qpos[0]
     assert push.sim.model.nu == 3 and push.x0[a + 2] == pytest.approx(TOP + 0.015, abs=1e-3)  # on the table top
