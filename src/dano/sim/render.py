@@ -216,16 +216,17 @@ def contact_arrows(sim, contacts, scale: float = 0.5) -> np.ndarray:
     """Arrows (T+1, P, 3, 3): per frame and pair, (start, end, (width, 0, 0)) of the pair's force on
     its DANO, from where it acts; a force equal to the DANO's weight is `scale` times the DANO's
     size long (the largest extent of its surface points); forces under 1 % of the weight are not
-    drawn (width 0)."""
+    drawn (width 0, end at the start: the viewer skips them too)."""
     names = {n: i for i, n in enumerate(sim.world.names)}
     states = [sim.world.danos[names[dano]] for dano, _ in contacts.names]
     size = np.array([float(np.max(np.ptp(np.asarray(st.points), axis=1))) for st in states])
     weight = np.array([float(st.mass) * 9.81 for st in states])
     share = contacts.force / weight[None, :, None]  # of each DANO's weight
+    shown = np.linalg.norm(share, axis=-1) > 0.01
     start = contacts.point
-    end = start + share * (scale * size)[None, :, None]
+    end = np.where(shown[..., None], start + share * (scale * size)[None, :, None], start)  # hidden: no length
     w = np.zeros_like(start)
-    w[..., 0] = np.where(np.linalg.norm(share, axis=-1) > 0.01, 0.04 * size[None, :], 0.0)
+    w[..., 0] = np.where(shown, 0.04 * size[None, :], 0.0)
     return np.stack([start, end, w], axis=2)
 
 

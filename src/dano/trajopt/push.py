@@ -107,8 +107,7 @@ def push_problem(
 
 
 def _full_ctrl(robot: AbstractPusher, held: jax.Array, u: jax.Array) -> jax.Array:
-    if not held.shape[0]:
-        return robot.full_ctrl(u)
+    """MuJoCo's `ctrl`: the world's actuators `held` (none in dano's own scenes), then the robot's."""
     ctrl = robot.full_ctrl(u)
     return jnp.concatenate([jnp.broadcast_to(held, (*ctrl.shape[:-1], held.shape[0])), ctrl], axis=-1)
 
