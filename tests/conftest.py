@@ -2,6 +2,8 @@
 
 import gc
 import os
+import shutil
+import tempfile
 from pathlib import Path
 
 import jax
@@ -10,9 +12,35 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
-# The command line's persistent compilation cache (`dano.cli.compilation_cache`) stays off in the
-# tests that call `dano.cli.main`: each test compiles what it runs, whatever ran before.
-os.environ["DANO_COMPILATION_CACHE"] = "off"
+RUN_CACHE = "DANO_TEST_COMPILATION_CACHE"
+"""A test run's own persistent compilation cache: a fresh folder per run (never the user's
+`~/.cache/dano/jax`), shared by the run's xdist workers and the command lines its tests start, so
+that a program compiled once in the run (a scene's rollout, an identification's Jacobians) is
+loaded, not compiled again, by the next test, worker or `dano` process that builds the same one.
+The programs are the same either way: XLA's compiled code, keyed by the program, the options and
+the versions; only the compile time is saved. `DANO_TEST_COMPILATION_CACHE=off` compiles
+everything in every test."""
+
+
+def pytest_configure(config):
+    """The run's cache folder: made by the controlling process (xdist's workers and the command
+    lines the tests start inherit it through the environment) and used by every process."""
+    if not hasattr(config, "workerinput") and os.environ.get(RUN_CACHE) is None:
+        os.environ[RUN_CACHE] = tempfile.mkdtemp(prefix="dano-test-jax-cache-")
+        config.dano_owns_cache = True
+    path = os.environ[RUN_CACHE]
+    if path.lower() == "off":
+        os.environ["DANO_COMPILATION_CACHE"] = "off"
+        return
+    os.environ["DANO_COMPILATION_CACHE"] = path  # `dano.cli.compilation_cache`: the same folder
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+def pytest_unconfigure(config):
+    if getattr(config, "dano_owns_cache", False):
+        shutil.rmtree(os.environ.pop(RUN_CACHE), ignore_errors=True)
+
 
 SHARED = Path(os.environ.get("DANO_SHARED", Path(__file__).resolve().parents[1] / ".." / "shared")).resolve()
 DOJO = SHARED / "data" / "dojo"

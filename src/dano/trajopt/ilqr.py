@@ -145,7 +145,7 @@ def open_loop(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: 
     T, m = us.shape
     f = pieces(problem, x0.shape[0], m)
     xs = jnp.zeros((T + 1, f.n)).at[0].set(x0)
-    return f.call(forward, xs, us, jnp.zeros((T, m)), jnp.zeros((T, m, f.n)), 0.0)[0]
+    return f.flow.call(forward, xs, us, jnp.zeros((T, m)), jnp.zeros((T, m, f.n)), 0.0)[0]
 
 
 def solve(
@@ -287,7 +287,7 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
                 return _InnerState(_Iterate(xs, us, o.reg_max, iterations), J, expansion, None, Result.stalled)
         step_small = float(jnp.max(jnp.abs(k))) <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
         for alpha in o.line_search:
-            x_new, u_new = fn.call(forward, xs, us, k, K, alpha)
+            x_new, u_new = fn.flow.call(forward, xs, us, k, K, alpha)
             if not bool(jnp.all(jnp.isfinite(x_new))):
                 continue
             J_new = float(fn.call(augmented, x_new, u_new, *self.mult))

@@ -92,13 +92,44 @@ class Pieces:
     def constraints(self, xs, us):
         return jax.vmap(self.c)(xs[:-1], us, self.ts)
 
+    @property
+    def flow(self) -> "Flow":
+        """What the forward pass needs of the problem: its dynamics over its horizon."""
+        return Flow(self.problem.dynamics, self.problem.horizon, _options(self.problem))
+
     def call(self, fn: Callable, *args):
         """fn(self, *args), compiled once per piece and problem (`dano.sim.run.jitted`, with the
         problem's `compiler_options`). Python numbers (a step length, a penalty) are passed as
         arrays, not compiled in; ints (a batch size) stay static."""
-        options = tuple(sorted((self.problem.compiler_options or {}).items()))
-        args = tuple(jnp.asarray(a) if isinstance(a, float) else a for a in args)
-        return jitted(fn, options)(self, *args)
+        return _call(fn, self, _options(self.problem), *args)
+
+
+@dataclasses.dataclass(frozen=True)
+class Flow:
+    """The dynamics over a horizon, as the forward pass (`forward`) uses them: hashed by the
+    dynamics function's identity, so that problems which share their dynamics (a settling rollout
+    and the push set up after it from where it came to rest) share the compiled forward pass."""
+
+    dynamics: Callable
+    horizon: int
+    options: tuple
+
+    @property
+    def ts(self) -> Array:
+        return jnp.arange(self.horizon)
+
+    def call(self, fn: Callable, *args):
+        """fn(self, *args), compiled once per piece and dynamics (as `Pieces.call`)."""
+        return _call(fn, self, self.options, *args)
+
+
+def _options(problem: OptimalControlProblem) -> tuple:
+    return tuple(sorted((problem.compiler_options or {}).items()))
+
+
+def _call(fn: Callable, static, options: tuple, *args):
+    args = tuple(jnp.asarray(a) if isinstance(a, float) else a for a in args)
+    return jitted(fn, options)(static, *args)
 
 
 def _no_constraints(x, u, t):
@@ -205,13 +236,13 @@ def backward(f: Pieces, A, B, g, H, gT, HT, reg):
     return k, K, jnp.sum(dV, axis=0), failed
 
 
-def forward(f: Pieces, xs, us, k, K, alpha):
-    """The closed-loop rollout u = ū + α k + K (x − x̄)."""
+def forward(f: Flow, xs, us, k, K, alpha):
+    """The closed-loop rollout u = ū + α k + K (x − x̄) (`Flow.call`)."""
 
     def step(x, inputs):
         x_ref, u_ref, k_t, K_t, t = inputs
         u = u_ref + alpha * k_t + K_t @ (x - x_ref)
-        x_next = f.problem.dynamics(x, u, t)
+        x_next = f.dynamics(x, u, t)
         return x_next, (x_next, u)
 
     _, (x_new, u_new) = jax.lax.scan(step, xs[0], (xs[:-1], us, k, K, f.ts))

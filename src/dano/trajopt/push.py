@@ -102,8 +102,9 @@ def push_problem(
     # The world's actuators come first in `ctrl`, held where the world starts them.
     held = jnp.asarray(sim.data.ctrl[: sim.model.nu - robot.full_ctrl(robot.hold()).shape[-1]])
     full = functools.partial(_full_ctrl, robot, held)
-    sim = _settled(sim, task.horizon, full(robot.hold()))
-    return _assemble(robot, task, sim, goal, full, floor)
+    dynamics = _dynamics(sim, full)
+    sim = _settled(sim, dynamics, task.horizon, robot.hold())
+    return _assemble(robot, task, sim, dynamics, goal, full, floor)
 
 
 def _full_ctrl(robot: AbstractPusher, held: jax.Array, u: jax.Array) -> jax.Array:
@@ -117,19 +118,22 @@ SETTLE_S = 0.5
 it rests (placed just above the table, it comes to rest in that time)."""
 
 
-def _settled(sim: Simulation, horizon: int, hold: jax.Array) -> Simulation:
+def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array) -> Simulation:
     """`sim` with its DANOs where they rest after `SETTLE_S` seconds, the robot held still.
 
-    Rolled out `horizon` frames at a time with the same compiled program (`Simulation.run` caches
-    it per frame count, and the returned simulation shares the cache), which the open-loop replay
-    of the solution then reuses: one compilation instead of two."""
+    Rolled out `horizon` frames at a time by the solver's own forward pass (`open_loop` of a
+    problem with the push's `dynamics`: `Flow` shares its compiled program with the push's warm
+    start and solve), so the settling compiles nothing of its own."""
     scene, world = sim.scene, sim.world
-    ctrl = jnp.broadcast_to(hold, (horizon, hold.shape[0]))
-    d = sim.data
+    settle = OptimalControlProblem(dynamics, _nothing, _nothing_at_the_end, horizon,
+                                   compiler_options=compiler_options(world))  # fmt: skip
+    controls = jnp.broadcast_to(hold, (horizon, hold.shape[0]))
+    x = jnp.concatenate([sim.data.qpos, sim.data.qvel])
     for _ in range(int(np.ceil(SETTLE_S / (horizon * scene.timestep) - 1e-9))):
-        traj = dataclasses.replace(sim, data=d).run(horizon, ctrl=ctrl)
-        d = d.replace(qpos=traj.qpos[-1], qvel=traj.qvel[-1])
-    qpos, rest = np.asarray(sim.data.qpos).copy(), np.asarray(d.qpos)
+        x = open_loop(settle, x, controls)[-1]
+    if not np.all(np.isfinite(np.asarray(x))):
+        raise TrajoptError("the object did not come to rest before the push: its settling diverged")
+    qpos, rest = np.asarray(sim.data.qpos).copy(), np.asarray(x[: sim.model.nq])
     bodies = []
     for b, a in zip(scene.bodies, world.dano_qpos, strict=True):  # the DANOs moved, at rest; the rest as placed
         qpos[a : a + 7] = rest[a : a + 7]
@@ -137,6 +141,29 @@ def _settled(sim: Simulation, horizon: int, hold: jax.Array) -> Simulation:
                                           quat=tuple(float(v) for v in rest[a + 3 : a + 7])))  # fmt: skip
     data = sim.data.replace(qpos=jnp.asarray(qpos))  # velocities as placed (at rest)
     return dataclasses.replace(sim, scene=dataclasses.replace(scene, bodies=tuple(bodies)), data=data)
+
+
+def _nothing(x, u, t):
+    return jnp.zeros(())
+
+
+def _nothing_at_the_end(x):
+    return jnp.zeros(())
+
+
+def _dynamics(sim: Simulation, full: Callable) -> Callable:
+    """x' = f(x, u, t): one frame of `sim` from the state x = (qpos, qvel) under the controls u
+    (`full` maps them to MuJoCo's `ctrl`). The rest of MuJoCo's data (mocap poses, the world's
+    activations) is `sim`'s as placed, which settling the DANOs does not change."""
+    world, params, d0, nq = sim.world, sim.params, sim.data, sim.model.nq
+    m = scaled_model(world, params, sim.mjx_model)
+
+    def dynamics(x, u, t):
+        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=full(u))
+        d = step(world, params, m, d)
+        return jnp.concatenate([d.qpos, d.qvel])
+
+    return dynamics
 
 
 def _scene(
@@ -154,23 +181,21 @@ def _scene(
 
 
 def _assemble(
-    robot: AbstractPusher, task: PushTask, sim: Simulation, goal: np.ndarray, full: Callable, floor: float
+    robot: AbstractPusher,
+    task: PushTask,
+    sim: Simulation,
+    dynamics: Callable,
+    goal: np.ndarray,
+    full: Callable,
+    floor: float,
 ) -> PushProblem:
-    """The problem; `full` maps the controls to MuJoCo's `ctrl`, `floor` is the height the
-    clearance is measured from (m)."""
-    world, params, model = sim.world, sim.params, sim.model
-    m = scaled_model(world, params, sim.mjx_model)
-    d0 = sim.data
-    nq = model.nq
+    """The problem from the settled `sim`; `dynamics` as `_dynamics` made them, `full` maps the
+    controls to MuJoCo's `ctrl`, `floor` is the height the clearance is measured from (m)."""
+    world, d0, nq = sim.world, sim.data, sim.model.nq
     x0 = np.concatenate([np.asarray(d0.qpos), np.asarray(d0.qvel)])
     a = world.dano_qpos[0]
     goal_world = np.asarray(d0.qpos)[a : a + 2] + goal
     pm = robot.model(sim, task, goal)
-
-    def dynamics(x, u, t):
-        d = d0.replace(qpos=x[:nq], qvel=x[nq:], ctrl=full(u))
-        d = step(world, params, m, d)
-        return jnp.concatenate([d.qpos, d.qvel])
 
     ee_start = np.asarray(pm.effector(jnp.asarray(x0))[0])
     ee_goal = ee_start if task.ee_goal is None else np.asarray(task.ee_goal, dtype=float)
