@@ -83,5 +83,6 @@ def test_a_servo_too_stiff_for_its_joint_is_refused(cube):
     # The implicit step compiles MuJoCo's implicitfast integrator (servo damping implicit): the same
     # bare hand at one 2 ms step holds its pose instead of ringing up.
     sim = Simulation.from_scene(dataclasses.replace(scene, integrator="implicit", substeps=1))
-    traj = sim.run(100, ctrl=jnp.tile(sim.data.qpos[: sim.model.nu], (100, 1)))
+    n = 200  # as many frames as the sweep above: the same compiled program
+    traj = sim.run(n, ctrl=jnp.tile(sim.data.qpos[: sim.model.nu], (n, 1)))
     assert np.all(np.isfinite(np.asarray(traj.qpos))) and float(jnp.max(jnp.abs(traj.qvel[-1, : sim.model.nu]))) < 0.1

@@ -254,7 +254,8 @@ def test_actuated_sphere_pushes_with_a_known_force(cube):
 
 
 def test_jacfwd_and_vmap_over_parameters_and_controls(cube):
-    """jacfwd w.r.t. the inertia scale and a control sequence; vmap over friction equals a loop."""
+    """jacfwd w.r.t. the inertia scale and a control sequence vs central differences; vmap over the
+    parameters (friction among them) equals the unbatched rollout."""
     z = _rest_height(cube)
     pusher = Primitive("ee", "sphere", (0.03,), pos=(-0.085, 0.01, z), mode="actuated", mass=1.0)
     body = DanoBody("c", cube, pos=(0, 0, z))
@@ -269,14 +270,22 @@ def test_jacfwd_and_vmap_over_parameters_and_controls(cube):
         return jnp.stack([q[0], q[1], q[6]])  # x, y and a quaternion component (the cube yaws)
 
     x0 = (1.0, 8.0, 0.4)
-    jac = eqx.filter_jit(jax.jacfwd(final, argnums=(0, 1)))(*x0)
-    f = eqx.filter_jit(final)
-    for J, fd in zip(jac, partial_differences(f, x0)[:2], strict=True):
+    # One program for the derivatives (with the value at x0 beside them) and one vmapped over all
+    # three arguments for everything else: the central differences and the frictions in one batch.
+    jac, value = eqx.filter_jit(jax.jacfwd(lambda *a: (final(*a),) * 2, argnums=(0, 1), has_aux=True))(*x0)
+    h = 1e-5 * np.array([1.0, 8.0])
+    points = [x0, (1.0 + h[0], 8.0, 0.4), (1.0 - h[0], 8.0, 0.4), (1.0, 8.0 + h[1], 0.4), (1.0, 8.0 - h[1], 0.4),
+              (1.0, 8.0, 0.2), (1.0, 8.0, 0.8)]  # fmt: skip
+    batched = np.asarray(
+        eqx.filter_jit(jax.vmap(final))(*(jnp.asarray(column) for column in zip(*points, strict=True)))
+    )
+    fds = [(batched[1] - batched[2]) / (2 * h[0]), (batched[3] - batched[4]) / (2 * h[1])]
+    for J, fd in zip(jac, fds, strict=True):
         # atol: central differences lose ~1e-5 of the largest entry to round-off; the sideways and
         # yaw entries are ~100x smaller than the push direction's.
         np.testing.assert_allclose(np.asarray(J), fd, rtol=1e-4, atol=1e-5 * np.max(np.abs(fd)))
         assert np.max(np.abs(fd)) > 1e-6
-    mus = jnp.asarray([0.2, 0.5, 0.8])
-    batched = eqx.filter_jit(jax.vmap(lambda mu: final(1.0, 8.0, mu)))(mus)
-    looped = jnp.stack([f(1.0, 8.0, mu) for mu in mus])
-    np.testing.assert_allclose(batched, looped, rtol=1e-10, atol=1e-13)
+    # vmap over the parameters equals the unbatched rollout (the value beside the derivatives);
+    # friction changes where the cube ends
+    np.testing.assert_allclose(batched[0], value, rtol=1e-10, atol=1e-13)
+    assert abs(batched[5, 0] - batched[6, 0]) > 1e-3

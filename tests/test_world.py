@@ -119,9 +119,10 @@ def test_gradients_through_a_world_rollout_match_central_differences(soap, tmp_p
         return jnp.stack([q[sim.world.dano_qpos[0]], q[crate]])
 
     theta = (0.5, 1.4)
-    f = jax.jit(final)
-    fd = np.stack(partial_differences(lambda *t: f(jnp.asarray(t)), theta, rel_step=1e-5), axis=1)
-    J = np.asarray(jax.jit(jax.jacfwd(final))(jnp.asarray(theta)))
+    # One compiled program: the Jacobian with the value beside it, which gives the differences too.
+    jac = jax.jit(jax.jacfwd(lambda t: (final(t),) * 2, has_aux=True))
+    fd = np.stack(partial_differences(lambda *t: jac(jnp.asarray(t))[1], theta, rel_step=1e-5), axis=1)
+    J = np.asarray(jac(jnp.asarray(theta))[0])
     np.testing.assert_allclose(J, fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max())
     assert np.abs(fd[1]).max() > 1e-3  # the crate's end depends on the soap: the hit is in the gradient
 
@@ -269,9 +270,9 @@ def test_a_dano_slides_down_a_height_field_at_g_sin_minus_mu_cos_and_rests_on_a_
         return rollout(sim.world, dataclasses.replace(sim.params, contact=contact), sim.mjx_model, d, 60).qpos[-1, a]
 
     theta = (mu, 0.3)
-    f = jax.jit(final)
-    fd = np.asarray(partial_differences(lambda *t: f(jnp.asarray(t)), theta, rel_step=1e-5))
-    J = np.asarray(jax.jit(jax.grad(final))(jnp.asarray(theta)))
+    program = jax.jit(jax.value_and_grad(final))  # one program: the differences from its values
+    fd = np.asarray(partial_differences(lambda *t: program(jnp.asarray(t))[0], theta, rel_step=1e-5))
+    J = np.asarray(program(jnp.asarray(theta))[1])
     np.testing.assert_allclose(J, fd, rtol=2e-3)
     assert fd[0] > 0.01  # more friction: it ends higher up the slope (at larger x)
 
