@@ -3,11 +3,14 @@
     python bench/trajopt.py [--points 200] [--horizon 10] [--robots sphere,panda] [--warm]
 
 Each push is solved cold (JIT compilation included) and, with --warm, again (the same problem,
-compiled). The object is the Stanford bunny DANO (0.5 kg), goal 10 cm ahead (sphere) or 8 cm aside
-(Panda); each robot's default goal handling (a constraint for the sphere, a cost for the Panda).
+compiled). The set-up's and the cold solve's XLA compile times are printed apart (JAX's
+`backend_compile_duration` events: the compilation proper, not the Python tracing before it).
+The object is the Stanford bunny DANO (0.5 kg), goal 10 cm ahead (sphere) or 8 cm aside (Panda);
+each robot's default goal handling (a constraint for the sphere, a cost for the Panda).
 """
 
 import argparse
+import contextlib
 import time
 
 import jax
@@ -22,6 +25,22 @@ from dano.trajopt.push import default_options  # noqa: E402
 from dano.trajopt.pushers import ROBOT_STEP  # noqa: E402
 
 
+@contextlib.contextmanager
+def xla_seconds():
+    """The seconds XLA spends compiling inside the block: `[total]`, filled in as it runs."""
+    total = [0.0]
+
+    def listen(event: str, duration_secs: float, **kwargs: str | int) -> None:
+        if event == "/jax/core/compile/backend_compile_duration":
+            total[0] += duration_secs
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        yield total
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--points", type=int, default=200)
@@ -34,9 +53,16 @@ def main() -> None:
     rows = []
     for robot in args.robots.split(","):
         start = time.perf_counter()
-        push = push_problem(bunny, robot, PushTask(goal=goals[robot], horizon=args.horizon))
+        with xla_seconds() as setup_xla:
+            push = push_problem(bunny, robot, PushTask(goal=goals[robot], horizon=args.horizon))
         setup = time.perf_counter() - start
-        cold = solve_push(push, default_options(robot), progress=True)
+        with xla_seconds() as cold_xla:
+            cold = solve_push(push, default_options(robot), progress=True)
+        print(
+            f"{robot}: XLA compile {setup_xla[0]:.1f} s of the set-up, {cold_xla[0]:.1f} s of the cold solve "
+            "and its replay",
+            flush=True,
+        )
         result = solve_push(push, default_options(robot)) if args.warm else cold  # the figures come from the last solve
         s = result.solution
         warm_s = s.seconds if args.warm else float("nan")
