@@ -20,6 +20,13 @@ def partial_differences(f, x0: tuple, rel_step: float = 1e-5) -> list[np.ndarray
     return out
 
 
+def with_value(f):
+    """f returning its value twice, for `jax.jacfwd(..., has_aux=True)`: the Jacobian and the value
+    from one compiled program (central differences then need no program of their own). The value
+    is computed once: `(v, v)`, not two calls of f, which would trace the rollout twice."""
+    return lambda *args: (f(*args),) * 2
+
+
 def analytic_fields():
     """The analytic fields the tests share (sphere, box, capsule with soft edges)."""
     from dano.fields import BoxField, CapsuleField, SphereField

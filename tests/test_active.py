@@ -15,7 +15,7 @@ from dano.fields import BoxField
 from dano.sim import DanoBody, Primitive, Scene
 from dano.sim.run import Simulation
 from dano.sim.step import rollout
-from helpers import partial_differences
+from helpers import partial_differences, with_value
 
 TURN = (0.8924, 0.2391, -0.3696, 0.1167)  # a unit quaternion: no axis of the bunny along a world axis
 
@@ -91,7 +91,7 @@ def test_derivatives_over_the_active_set_equal_those_over_all_points(bunny):
 
     theta = jnp.asarray([0.4, 0.5])
     # each with the value beside it: the default budget's program gives the central differences too
-    programs = {k: jax.jit(jax.jacfwd(_with_value(final(k)), has_aux=True)) for k in (bunny.n_points, None, 1)}
+    programs = {k: jax.jit(jax.jacfwd(with_value(final(k)), has_aux=True)) for k in (bunny.n_points, None, 1)}
     jacobians = {k: np.asarray(fn(theta)[0]) for k, fn in programs.items()}
     for k in (None, 1):
         np.testing.assert_allclose(jacobians[k], jacobians[bunny.n_points], rtol=1e-7, atol=1e-12)
@@ -102,11 +102,6 @@ def test_derivatives_over_the_active_set_equal_those_over_all_points(bunny):
     fd = np.stack(partial_differences(value, tuple(map(float, theta)), rel_step=1e-5), axis=1)
     np.testing.assert_allclose(jacobians[None], fd, rtol=2e-4, atol=1e-6 * np.abs(fd).max())
     assert np.abs(fd[0]).min() > 1e-4  # friction and the start both move the bunny
-
-
-def _with_value(f):
-    """f's value twice: as the function `jax.jacfwd(..., has_aux=True)` differentiates, and beside it."""
-    return lambda t: (f(t),) * 2
 
 
 def test_a_batch_where_one_environment_overflows_equals_each_run_alone(bunny):

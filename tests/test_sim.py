@@ -14,7 +14,7 @@ from dano.sim import DanoBody, Params, Primitive, Scene
 from dano.sim.run import Simulation, SimulationError
 from dano.sim.scene import DEFAULT_SUBSTEPS
 from dano.sim.step import rollout
-from helpers import partial_differences
+from helpers import partial_differences, with_value
 
 G = 9.81
 
@@ -272,7 +272,7 @@ def test_jacfwd_and_vmap_over_parameters_and_controls(cube):
     x0 = (1.0, 8.0, 0.4)
     # One program for the derivatives (with the value at x0 beside them) and one vmapped over all
     # three arguments for everything else: the central differences and the frictions in one batch.
-    jac, value = eqx.filter_jit(jax.jacfwd(lambda *a: (final(*a),) * 2, argnums=(0, 1), has_aux=True))(*x0)
+    jac, value = eqx.filter_jit(jax.jacfwd(with_value(final), argnums=(0, 1), has_aux=True))(*x0)
     h = 1e-5 * np.array([1.0, 8.0])
     points = [x0, (1.0 + h[0], 8.0, 0.4), (1.0 - h[0], 8.0, 0.4), (1.0, 8.0 + h[1], 0.4), (1.0, 8.0 - h[1], 0.4),
               (1.0, 8.0, 0.2), (1.0, 8.0, 0.8)]  # fmt: skip

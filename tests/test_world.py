@@ -14,7 +14,7 @@ from dano.sim import DanoBody, Robot, Scene
 from dano.sim.run import Simulation
 from dano.sim.scene import SceneError
 from dano.sim.step import rollout
-from helpers import partial_differences
+from helpers import partial_differences, with_value
 
 TOP = 0.22  # the table's top
 WORLD = """<mujoco>
@@ -120,7 +120,7 @@ def test_gradients_through_a_world_rollout_match_central_differences(soap, tmp_p
 
     theta = (0.5, 1.4)
     # One compiled program: the Jacobian with the value beside it, which gives the differences too.
-    jac = jax.jit(jax.jacfwd(lambda t: (final(t),) * 2, has_aux=True))
+    jac = jax.jit(jax.jacfwd(with_value(final), has_aux=True))
     fd = np.stack(partial_differences(lambda *t: jac(jnp.asarray(t))[1], theta, rel_step=1e-5), axis=1)
     J = np.asarray(jac(jnp.asarray(theta))[0])
     np.testing.assert_allclose(J, fd, rtol=2e-3, atol=1e-6 * np.abs(fd).max())

@@ -41,6 +41,7 @@ from dano.trajopt.pieces import (
     expand,
     forward,
     objective,
+    open_loop_states,
     pieces,
     violation,
 )
@@ -141,11 +142,7 @@ def open_loop(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: 
     """The states (T+1, n) of the open-loop `controls` from x0, as the solver rolls them out: its
     closed-loop forward pass with no feedback and no step, so the dynamics are compiled once for
     both (a warm start's rollouts and every later `solve` of the problem share the program)."""
-    us = jnp.asarray(controls)
-    T, m = us.shape
-    f = pieces(problem, x0.shape[0], m)
-    xs = jnp.zeros((T + 1, f.n)).at[0].set(x0)
-    return f.flow.call(forward, xs, us, jnp.zeros((T, m)), jnp.zeros((T, m, f.n)), 0.0)[0]
+    return open_loop_states(problem.flow, x0, controls)
 
 
 def solve(

@@ -43,6 +43,11 @@ class OptimalControlProblem:
     terminal_constraints: Callable | None = None
     compiler_options: dict | None = None
 
+    @property
+    def flow(self) -> "Flow":
+        """What the forward pass needs: the dynamics over the horizon (`Flow`)."""
+        return Flow.of(self.dynamics, self.horizon, self.compiler_options)
+
 
 def rollout(problem: OptimalControlProblem, x0: Float[Array, " n"], controls: Float[Array, "T m"]) -> Array:
     """States (T+1, n) of the open-loop controls from x0."""
@@ -95,13 +100,13 @@ class Pieces:
     @property
     def flow(self) -> "Flow":
         """What the forward pass needs of the problem: its dynamics over its horizon."""
-        return Flow(self.problem.dynamics, self.problem.horizon, _options(self.problem))
+        return self.problem.flow
 
     def call(self, fn: Callable, *args):
         """fn(self, *args), compiled once per piece and problem (`dano.sim.run.jitted`, with the
         problem's `compiler_options`). Python numbers (a step length, a penalty) are passed as
         arrays, not compiled in; ints (a batch size) stay static."""
-        return _call(fn, self, _options(self.problem), *args)
+        return _call(fn, self, _options(self.problem.compiler_options), *args)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,6 +119,11 @@ class Flow:
     horizon: int
     options: tuple
 
+    @classmethod
+    def of(cls, dynamics: Callable, horizon: int, compiler_options: dict | None = None) -> "Flow":
+        """`dynamics` over `horizon` steps, compiled with XLA's `compiler_options`."""
+        return cls(dynamics, horizon, _options(compiler_options))
+
     @property
     def ts(self) -> Array:
         return jnp.arange(self.horizon)
@@ -123,8 +133,9 @@ class Flow:
         return _call(fn, self, self.options, *args)
 
 
-def _options(problem: OptimalControlProblem) -> tuple:
-    return tuple(sorted((problem.compiler_options or {}).items()))
+def _options(compiler_options: dict | None) -> tuple:
+    """XLA's options as sorted (name, value) pairs: hashable, the form `jitted` takes."""
+    return tuple(sorted((compiler_options or {}).items()))
 
 
 def _call(fn: Callable, static, options: tuple, *args):
@@ -247,3 +258,13 @@ def forward(f: Flow, xs, us, k, K, alpha):
 
     _, (x_new, u_new) = jax.lax.scan(step, xs[0], (xs[:-1], us, k, K, f.ts))
     return jnp.concatenate([xs[:1], x_new], axis=0), u_new
+
+
+def open_loop_states(f: Flow, x0: Float[Array, " n"], controls: Float[Array, "T m"]) -> Array:
+    """The states (T+1, n) of the open-loop `controls` from x0: the closed-loop forward pass with
+    no feedback and no step, so that it and the solver's forward passes are one compiled program."""
+    us = jnp.asarray(controls)
+    T, m = us.shape
+    n = x0.shape[0]
+    xs = jnp.zeros((T + 1, n)).at[0].set(x0)
+    return f.call(forward, xs, us, jnp.zeros((T, m)), jnp.zeros((T, m, n)), 0.0)[0]

@@ -25,7 +25,7 @@ from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Integrator, Scene
 from dano.sim.step import Trajectory, scaled_model, step
 from dano.trajopt.ilqr import Options, Solution, open_loop, solve
-from dano.trajopt.pieces import OptimalControlProblem, TrajoptError
+from dano.trajopt.pieces import Flow, OptimalControlProblem, TrajoptError, open_loop_states
 from dano.trajopt.pushers import AbstractPusher, dof, pusher
 from dano.trajopt.task import PushTask
 from dano.types import DANO
@@ -121,16 +121,15 @@ it rests (placed just above the table, it comes to rest in that time)."""
 def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array) -> Simulation:
     """`sim` with its DANOs where they rest after `SETTLE_S` seconds, the robot held still.
 
-    Rolled out `horizon` frames at a time by the solver's own forward pass (`open_loop` of a
-    problem with the push's `dynamics`: `Flow` shares its compiled program with the push's warm
-    start and solve), so the settling compiles nothing of its own."""
+    Rolled out `horizon` frames at a time by the solver's own forward pass (`open_loop_states` on
+    the push's `dynamics`: `Flow` shares its compiled program with the push's warm start and
+    solve), so the settling compiles nothing of its own."""
     scene, world = sim.scene, sim.world
-    settle = OptimalControlProblem(dynamics, _nothing, _nothing_at_the_end, horizon,
-                                   compiler_options=compiler_options(world))  # fmt: skip
+    flow = Flow.of(dynamics, horizon, compiler_options(world))
     controls = jnp.broadcast_to(hold, (horizon, hold.shape[0]))
     x = jnp.concatenate([sim.data.qpos, sim.data.qvel])
     for _ in range(int(np.ceil(SETTLE_S / (horizon * scene.timestep) - 1e-9))):
-        x = open_loop(settle, x, controls)[-1]
+        x = open_loop_states(flow, x, controls)[-1]
     if not np.all(np.isfinite(np.asarray(x))):
         raise TrajoptError("the object did not come to rest before the push: its settling diverged")
     qpos, rest = np.asarray(sim.data.qpos).copy(), np.asarray(x[: sim.model.nq])
@@ -141,14 +140,6 @@ def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array)
                                           quat=tuple(float(v) for v in rest[a + 3 : a + 7])))  # fmt: skip
     data = sim.data.replace(qpos=jnp.asarray(qpos))  # velocities as placed (at rest)
     return dataclasses.replace(sim, scene=dataclasses.replace(scene, bodies=tuple(bodies)), data=data)
-
-
-def _nothing(x, u, t):
-    return jnp.zeros(())
-
-
-def _nothing_at_the_end(x):
-    return jnp.zeros(())
 
 
 def _dynamics(sim: Simulation, full: Callable) -> Callable:
