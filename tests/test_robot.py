@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -11,6 +12,8 @@ from dano.assets import panda
 from dano.fields import BoxField
 from dano.sim import DanoBody, Robot, Scene
 from dano.sim.run import Simulation
+from dano.sim.world import pairs
+from helpers import with_value
 
 
 @pytest.fixture(scope="module")
@@ -86,3 +89,64 @@ def test_a_servo_too_stiff_for_its_joint_is_refused(cube):
     n = 200  # as many frames as the sweep above: the same compiled program
     traj = sim.run(n, ctrl=jnp.tile(sim.data.qpos[: sim.model.nu], (n, 1)))
     assert np.all(np.isfinite(np.asarray(traj.qpos))) and float(jnp.max(jnp.abs(traj.qvel[-1, : sim.model.nu]))) < 0.1
+
+
+GROUPED_ARM = """<mujoco><asset>
+  <mesh name="tetra" vertex="0 0 0  0.03 0 0  0 0.03 0  0 0 0.03"/>
+  <mesh name="octa" vertex="0.02 0 0  -0.02 0 0  0 0.02 0  0 -0.02 0  0 0 0.02  0 0 -0.02"/>
+</asset><worldbody><body name="arm">
+  <joint name="yaw" type="hinge" axis="0 0 1" damping="1"/>
+  <geom name="east" type="box" pos="0.048 0 0.03" size="0.02 0.02 0.02" mass="0.2"/>
+  <geom name="west" type="box" pos="-0.046 0.01 0.03" size="0.018 0.025 0.015" euler="0 0 20" mass="0.2"/>
+  <geom name="far" type="box" pos="0.6 0.6 0.03" size="0.02 0.02 0.02" mass="0.2"/>
+  <geom name="north" type="mesh" mesh="tetra" pos="0.01 0.028 0.02" mass="0.1"/>
+  <geom name="south" type="mesh" mesh="octa" pos="0 -0.048 0.03" mass="0.1"/>
+  <geom name="top" type="capsule" fromto="-0.02 0 0.0645 0.02 0 0.0645" size="0.007" mass="0.1"/>
+</body></worldbody></mujoco>"""
+
+
+@pytest.mark.slow
+def test_link_pairs_computed_as_groups_equal_pair_by_pair(cube, tmp_path, monkeypatch):
+    # A one-joint arm whose boxes, capsule and two convex meshes (4 and 8 planes: padded to 8 in
+    # their group) press into a tilted cube from every side, and a box far away. The step computes
+    # the boxes as one group, the meshes as another (`pair_groups`); pair by pair it must give the
+    # same wrench per link and the same step. The grouped step's derivative w.r.t. friction
+    # against central differences.
+    from dano.sim import implicit
+    from dano.sim.step import scaled_model
+
+    (tmp_path / "arm.xml").write_text(GROUPED_ARM)
+    z = -float(jnp.min(cube.body_points[:, 2]))
+    body = DanoBody("cube", cube, pos=(0.0, 0.0, z), quat=(0.999, 0.02, -0.03, 0.01))
+    sim = Simulation.from_scene(Scene(bodies=(body,), robot=Robot(str(tmp_path / "arm.xml"))))
+    world = sim.world
+    assert [link.kind for link in world.links] == ["box", "box", "box", "mesh", "mesh", "capsule"]
+    mu0 = jnp.asarray(0.4)
+
+    def step(mu):
+        contact = tuple(dataclasses.replace(p, sliding_friction=mu) for p in sim.params.contact)
+        params = dataclasses.replace(sim.params, contact=contact)
+        d = implicit.implicit_step(world, params, scaled_model(world, params, sim.mjx_model), sim.data)
+        return jnp.concatenate([d.qpos, d.qvel])
+
+    def contacts():
+        m = scaled_model(world, sim.params, sim.mjx_model)
+        return jax.jit(lambda: implicit.implicit_contacts(world, sim.params, m, sim.data))()
+
+    wrench, point = contacts()
+    derivative = jax.jit(jax.jacfwd(with_value(step), has_aux=True))
+    jac, x = derivative(mu0)
+    eps = 1e-6
+    fd = (derivative(mu0 + eps)[1] - derivative(mu0 - eps)[1]) / (2 * eps)
+    alone = lambda pair_list, mates, other: tuple((j,) for j in range(len(pair_list)))  # noqa: E731
+    monkeypatch.setattr(implicit, "pair_groups", alone)
+    wrench1, point1 = contacts()
+    x1 = jax.jit(step)(mu0)
+
+    force = [float(np.linalg.norm(wrench[j, :3])) for j, (_, kind, _) in enumerate(pairs(world)) if kind == "link"]
+    assert force[2] == 0.0 and min(force[:2] + force[3:]) > 0.1, force  # the far box alone has none
+    np.testing.assert_allclose(wrench, wrench1, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(point, point1, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(x, x1, rtol=1e-10, atol=1e-12)
+    assert np.max(np.abs(np.asarray(jac))) > 1e-3  # friction matters to the step
+    np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * float(np.max(np.abs(fd))))

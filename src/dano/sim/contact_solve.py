@@ -7,7 +7,7 @@ its solve (`solved`): over each pair's active set (`dano.contact.active`), check
 the points it dropped, or over all points once one of them turns out live.
 """
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -16,7 +16,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano._mjx import mjx
-from dano.contact import active
+from dano.contact import ContactParams, active
 from dano.contact.friction import Patch, patch_terms
 from dano.contact.pairs import Frame
 from dano.contact.pairs import reaction as reaction_of
@@ -62,16 +62,35 @@ def _centroid(patch: Patch, psi: Array) -> Patch:
     return Patch(mean(patch.r_a), mean(patch.r_b), mean(patch.u_b), patch.w_b, normal, total[None], patch.joint)
 
 
+def each(fn, *args) -> Any:
+    """fn over the leading axis of `args` (a group's stacked pairs, `ContactProblem.groups`), results
+    stacked: a loop (`lax.map`), so the program holds one copy of fn; for a group of one, fn itself
+    on the one pair. (A loop, not `vmap`: on the Panda's groups of 8 and 9 links the loop compiled
+    in 23 s and ran 200 frames in 3.4 s, `vmap` 27 s and 4.7 s; batched small products are slower
+    on a CPU than a loop of them.)"""
+    if jax.tree_util.tree_leaves(args)[0].shape[0] == 1:
+        return jax.tree_util.tree_map(lambda x: x[None], fn(*jax.tree_util.tree_map(lambda x: x[0], args)))
+    return jax.lax.map(lambda a: fn(*a), args)
+
+
 class ContactProblem(NamedTuple):
     """One step's contact problem, as the solve sees it (built by `dano.sim.implicit.implicit_step`).
+
+    The pairs come in groups (`groups`): the pairs of one DANO whose partners move at known
+    velocities and have shapes of one kind and size (a robot's finger boxes; its meshes, their
+    planes padded to the most) are stacked leaf-wise along a leading axis and computed as one
+    (`each`), so the step's program holds one copy of the contact per group, not per pair; every
+    other pair is a group of its own.
 
     Attributes:
         world, params, h: the scene, its parameters and the step.
         n: DANOs; their 6 velocities come first in V, then each free or actuated primitive's.
         pair_list: the pairs (`dano.sim.world.pairs`) and `mates` their partners.
-        other: where each pair's partner sits in V (a DANO or a free primitive), or -1 (it moves
-            at a known velocity).
-        supports, patches: each pair's points at the pose the free motion reaches.
+        groups: the pairs (indices into `pair_list`) of each group.
+        other: per group, where its partner sits in V (a DANO or a free primitive), or -1 (its
+            partners move at known velocities).
+        contact: per group, its pairs' `ContactParams` stacked.
+        supports, patches: per group, its pairs' points at the pose the free motion reaches, stacked.
         V_free: V~ (6 n_all,); M its mass matrix; `locked` the velocities held at 0.
         frames: the unknowns' frames at the step's start; `masses` their masses.
         prim_body: the MuJoCo bodies of the free primitives in V.
@@ -85,7 +104,9 @@ class ContactProblem(NamedTuple):
     n: int
     pair_list: tuple[tuple[int, str, int], ...]
     mates: tuple[Partner, ...]
+    groups: tuple[tuple[int, ...], ...]
     other: list[int]
+    contact: list[ContactParams]
     supports: list[Support]
     patches: list[Patch]
     V_free: Array
@@ -102,50 +123,68 @@ class ContactProblem(NamedTuple):
         return self.world.force_mode == "centroid"
 
 
-def slots(c: ContactProblem, j: int) -> list[int]:
-    """Where pair j's velocity vector (V_a, or (V_a, V_b) with a partner in V) sits in V."""
-    i, o = c.pair_list[j][0], c.other[j]
+def slots(c: ContactProblem, g: int) -> list[int]:
+    """Where group g's velocity vector (V_a, or (V_a, V_b) with a partner in V) sits in V."""
+    i, o = c.pair_list[c.groups[g][0]][0], c.other[g]
     return list(range(6 * i, 6 * i + 6)) + (list(range(6 * o, 6 * o + 6)) if o >= 0 else [])
 
 
-def pair_velocity(c: ContactProblem, j: int, V: Array) -> Array:
-    return V[jnp.asarray(slots(c, j))]
+def pair_velocity(c: ContactProblem, g: int, V: Array) -> Array:
+    return V[jnp.asarray(slots(c, g))]
 
 
-def scatter_pair(c: ContactProblem, j: int, g: Array, H: Array) -> tuple[Array, Array]:
-    """A pair's gradient (m,) and Hessian (m, m) into the (6N,) and (6N, 6N) of all unknowns."""
-    idx = jnp.asarray(slots(c, j))
+def scatter_pair(c: ContactProblem, g: int, grad: Array, H: Array) -> tuple[Array, Array]:
+    """A group's gradient (m,) and Hessian (m, m) into the (6N,) and (6N, 6N) of all unknowns."""
+    idx = jnp.asarray(slots(c, g))
     size = c.V_free.shape[0]
-    return jnp.zeros(size).at[idx].add(g), jnp.zeros((size, size)).at[idx[:, None], idx[None, :]].add(H)
+    return jnp.zeros(size).at[idx].add(grad), jnp.zeros((size, size)).at[idx[:, None], idx[None, :]].add(H)
 
 
 def point_sets(c: ContactProblem, sups, pts) -> _Sets:
-    u_n0 = tuple(normal_velocity(pt, pair_velocity(c, j, c.V_free))[0] for j, pt in enumerate(pts))
+    def u_n0(g, pt):
+        Vg = pair_velocity(c, g, c.V_free)
+        return each(lambda q: normal_velocity(q, Vg)[0], pt)
+
     # The damper's overlaps, lagged: at the pose the free motion reaches.
-    return _Sets(tuple(sups), tuple(pts), tuple(overlap(sup, sup.s0) for sup in sups), u_n0)
+    psi0 = tuple(each(lambda s: overlap(s, s.s0), sup) for sup in sups)
+    return _Sets(tuple(sups), tuple(pts), psi0, tuple(u_n0(g, pt) for g, pt in enumerate(pts)))
 
 
 def with_friction(c: ContactProblem, sets: _Sets, V: Array, on: Array) -> list[Patch]:
-    """Each pair's friction patch at the normal forces delivered at the velocities V, times `on`
+    """Each group's friction patches at the normal forces delivered at the velocities V, times `on`
     (0: no friction, 1)."""
-    out = []
-    for j, (p, sup, pt) in enumerate(zip(c.params.contact, sets.supports, sets.patches, strict=True)):
-        _, _, _, s, u_n = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], c.h, pair_velocity(c, j, V), c.centroid)
-        N = on * friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * sets.psi0[j] * u_n)
-        fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
-        out.append(_centroid(fr, N) if c.centroid else fr)
-    return out
+
+    def group(g):
+        Vg = pair_velocity(c, g, V)
+
+        def one(p, sup, pt, psi0, u_n0):
+            _, _, _, s, u_n = normal_terms(p, sup, pt, psi0, u_n0, c.h, Vg, c.centroid)
+            N = on * friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * psi0 * u_n)
+            fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
+            return _centroid(fr, N) if c.centroid else fr
+
+        return each(one, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g])
+
+    return [group(g) for g in range(len(c.groups))]
 
 
-def pair_terms(c: ContactProblem, sets: _Sets, j: int, friction: list[Patch], V: Array):
-    """Pair j's U + h R + h D (D with the friction patches) at V, with its gradient and Hessian
-    w.r.t. the pair's velocity vector."""
-    Vj = pair_velocity(c, j, V)
-    p = c.params.contact[j]
-    sup, pt = sets.supports[j], sets.patches[j]
-    value, g, H, _, _ = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], c.h, Vj, c.centroid)
-    fv, fg, fH = patch_terms(p, friction[j], Vj)
-    return value + c.h * fv, g + c.h * fg, H + c.h * fH
+def _member_terms(c: ContactProblem, sets: _Sets, g: int, friction: list[Patch], V: Array):
+    """Each pair of group g: its U + h R + h D (D with the friction patches) at V, with its gradient
+    and Hessian w.r.t. the group's velocity vector (stacked)."""
+    Vg = pair_velocity(c, g, V)
+
+    def one(p, sup, pt, psi0, u_n0, fr):
+        value, grad, H, _, _ = normal_terms(p, sup, pt, psi0, u_n0, c.h, Vg, c.centroid)
+        fv, fg, fH = patch_terms(p, fr, Vg)
+        return value + c.h * fv, grad + c.h * fg, H + c.h * fH
+
+    return each(one, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g], friction[g])
+
+
+def pair_terms(c: ContactProblem, sets: _Sets, g: int, friction: list[Patch], V: Array):
+    """Group g's U + h R + h D (D with the friction patches) at V, with its gradient and Hessian
+    w.r.t. the group's velocity vector: its pairs' summed."""
+    return tuple(jnp.sum(x, axis=0) for x in _member_terms(c, sets, g, friction, V))
 
 
 def objective(c: ContactProblem, sets: _Sets, friction: list[Patch]):
@@ -153,21 +192,21 @@ def objective(c: ContactProblem, sets: _Sets, friction: list[Patch]):
 
     def f(V):
         e = V - c.V_free
-        value, g, H = 0.5 * e @ c.M @ e, c.M @ e, c.M
-        for j in range(len(c.pair_list)):
-            vj, gj, Hj = pair_terms(c, sets, j, friction, V)
-            gj, Hj = scatter_pair(c, j, gj, Hj)
-            value, g, H = value + vj, g + gj, H + Hj
+        value, grad, H = 0.5 * e @ c.M @ e, c.M @ e, c.M
+        for g in range(len(c.groups)):
+            vg, gg, Hg = pair_terms(c, sets, g, friction, V)
+            gg, Hg = scatter_pair(c, g, gg, Hg)
+            value, grad, H = value + vg, grad + gg, H + Hg
         if c.locked.any():  # held velocities: no gradient, a unit Hessian (Newton leaves them at 0)
-            g = jnp.where(c.locked, 0.0, g)
+            grad = jnp.where(c.locked, 0.0, grad)
             H = jnp.where(c.locked[:, None] | c.locked[None, :], jnp.eye(c.V_free.shape[0]), H)
-        return value, g, H
+        return value, grad, H
 
     return f
 
 
 class _Active(NamedTuple):
-    """The pairs' active sets (None where a pair is solved over all its points), the points they
+    """The groups' active sets (None where a group is solved over all its points), the points they
     dropped, the sets over the active points, and whether a set overflowed at the start."""
 
     actives: list
@@ -178,35 +217,41 @@ class _Active(NamedTuple):
 
 def active_sets(c: ContactProblem) -> _Active:
     """The active set of each pair (`dano.contact.active`), where its budget is below its points."""
-    budgets = [
-        c.world.danos[i].budget + (c.world.danos[mate.dano].budget if mate.dano >= 0 else 0)
-        for (i, _, _), mate in zip(c.pair_list, c.mates, strict=True)
-    ]
-    actives = [
-        active.choose(sup, k) if 0 < k < sup.s0.shape[0] else None for sup, k in zip(c.supports, budgets, strict=True)
-    ]
+
+    def budget(g):
+        i, mate = c.pair_list[c.groups[g][0]][0], c.mates[c.groups[g][0]]
+        return c.world.danos[i].budget + (c.world.danos[mate.dano].budget if mate.dano >= 0 else 0)
+
+    actives = []
+    for g, sup in enumerate(c.supports):
+        k = budget(g)
+        actives.append(each(lambda s, k=k: active.choose(s, k), sup) if 0 < k < sup.s0.shape[-1] else None)
     triples = list(zip(c.supports, c.patches, actives, strict=True))
-    taken = [active.take(sup, pt, a) if a is not None else (sup, pt) for sup, pt, a in triples]
+    taken = [each(active.take, sup, pt, a) if a is not None else (sup, pt) for sup, pt, a in triples]
     sparse = point_sets(c, [t[0] for t in taken], [t[1] for t in taken])
-    drops = [active.dropped(sup, pt, a) if a is not None else None for sup, pt, a in triples]
-    started_over = jnp.any(jnp.asarray([a.overflow for a in actives if a is not None] or [False]))
+    drops = [each(active.dropped, sup, pt, a) if a is not None else None for sup, pt, a in triples]
+    started_over = jnp.any(jnp.asarray([jnp.any(a.overflow) for a in actives if a is not None] or [False]))
     return _Active(actives, drops, sparse, started_over)
 
 
-def missed(c: ContactProblem, sets: _Active, u_n0: list, V: Array) -> Array:
+def missed(c: ContactProblem, sets: _Active, u_n0: tuple, V: Array) -> Array:
     """Whether a point that the active sets dropped is live at V (`dano.contact.active`); `u_n0`
     every point's normal velocity at V~."""
     out = sets.started_over
-    for j, (a, drop) in enumerate(zip(sets.actives, sets.drops, strict=True)):
+    for g, (a, drop) in enumerate(zip(sets.actives, sets.drops, strict=True)):
         if a is None or drop is None:  # both or neither
             continue
-        dV = pair_velocity(c, j, V) - pair_velocity(c, j, c.V_free)
+        Vg = pair_velocity(c, g, V)
+        dV = Vg - pair_velocity(c, g, c.V_free)
 
-        def exact(j=j, a=a):
-            return active.missed(c.supports[j], c.patches[j], a, u_n0[j], pair_velocity(c, j, V), c.h)
+        def exact(g=g, a=a, Vg=Vg):
+            def one(sup, pt, act, u):
+                return active.missed(sup, pt, act, u, Vg, c.h)
+
+            return jnp.any(each(one, c.supports[g], c.patches[g], a, u_n0[g]))
 
         # the exact check under a once-or-never loop: in a batch, only when some element needs it
-        safe = active.bound_holds(c.supports[j], drop, dV, c.h)
+        safe = jnp.all(each(lambda s, d, dV=dV: active.bound_holds(s, d, dV, c.h), c.supports[g], drop))
         out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
     return out
 
@@ -214,7 +259,7 @@ def missed(c: ContactProblem, sets: _Active, u_n0: list, V: Array) -> Array:
 class Solution(NamedTuple):
     """A step's solve: V', whether a dropped point turned out live (the step went dense), the
     velocities the last pass's friction was taken at, and the active sets' points (None where every
-    pair was solved over all its points)."""
+    group was solved over all its points)."""
 
     V_next: Array
     over: Array
@@ -235,7 +280,7 @@ def solve(c: ContactProblem) -> Solution:
     sets = active_sets(c)
     sparse_step = any(a is not None for a in sets.actives)
     # Every point's normal velocity at V~, for the exact check (once per step, not per pass).
-    u_n0 = [normal_velocity(pt, pair_velocity(c, j, c.V_free))[0] for j, pt in enumerate(c.patches)]
+    u_n0 = point_sets(c, c.supports, c.patches).u_n0
     tol = 1e-20 * sum(c.masses)
     # The first friction solve starts from the velocities the step starts with, not from the
     # frictionless answer: a body that friction holds is near them, while without friction it
@@ -280,24 +325,29 @@ def solve(c: ContactProblem) -> Solution:
     return Solution(V_next, over, befores[-1], sets.sparse if sparse_step else None)
 
 
-def pair_wrench(c: ContactProblem, s: Solution, j: int, point: bool = False) -> tuple[Array, Array | None]:
-    """Pair j's wrench on its DANO at the solution (force, torque about the DANO's centre of mass;
-    world; -dT/dV_a / h) over the points the last pass was solved over (the active sets, or all
-    points where there are none or they overflowed), and with `point` where its normal force acts
-    (the centroid of its points' positive normal forces, world; the DANO's centre without any)."""
+def group_wrench(c: ContactProblem, s: Solution, g: int, point: bool = False) -> tuple[Array, Array | None]:
+    """Each pair's wrench of group g on its DANO at the solution ((k, 6): force, torque about the
+    DANO's centre of mass; world; -dT/dV_a / h) over the points the last pass was solved over (the
+    active sets, or all points where there are none or they overflowed), and with `point` where its
+    normal force acts ((k, 3): the centroid of its points' positive normal forces, world; the DANO's
+    centre without any)."""
     last_on = jnp.asarray(float(PASSES > 1), c.V_free.dtype)
+    centre = c.frames[c.pair_list[c.groups[g][0]][0]].x
+    Vg = pair_velocity(c, g, s.V_next)
 
     def of(sets):
-        g = pair_terms(c, sets, j, with_friction(c, sets, s.V_before, last_on), s.V_next)[1]
+        grads = _member_terms(c, sets, g, with_friction(c, sets, s.V_before, last_on), s.V_next)[1]
         if not point:
-            return -g[:6] / c.h, None
-        p, sup, pt = c.params.contact[j], sets.supports[j], sets.patches[j]
-        Vj = pair_velocity(c, j, s.V_next)
-        _, _, _, depth, u_n = normal_terms(p, sup, pt, sets.psi0[j], sets.u_n0[j], c.h, Vj, c.centroid)
-        N = jnp.maximum(p.impact_spring * overlap(sup, depth) - p.impact_damper * sets.psi0[j] * u_n, 0.0)
-        total = jnp.sum(N)
-        centre = c.frames[c.pair_list[j][0]].x
-        return -g[:6] / c.h, jnp.where(total > 0, sup.at @ N / jnp.where(total > 0, total, 1.0), centre)
+            return -grads[:, :6] / c.h, None
+
+        def at(p, sup, pt, psi0, u_n0):
+            _, _, _, depth, u_n = normal_terms(p, sup, pt, psi0, u_n0, c.h, Vg, c.centroid)
+            N = jnp.maximum(p.impact_spring * overlap(sup, depth) - p.impact_damper * psi0 * u_n, 0.0)
+            total = jnp.sum(N)
+            return jnp.where(total > 0, sup.at @ N / jnp.where(total > 0, total, 1.0), centre)
+
+        points = each(at, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g])
+        return -grads[:, :6] / c.h, points
 
     def every():
         return of(point_sets(c, c.supports, c.patches))
@@ -307,21 +357,25 @@ def pair_wrench(c: ContactProblem, s: Solution, j: int, point: bool = False) -> 
 
 
 def reactions(c: ContactProblem, s: Solution) -> Array:
-    """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (`pair_wrench`)."""
+    """The pairs' reactions on MuJoCo bodies, as `xfrc_applied` (`group_wrench`)."""
     xfrc = c.xfrc
     for k, body in enumerate(c.prim_body):  # a free primitive: the wrench that takes it to V'
         e = slice(6 * (c.n + k), 6 * (c.n + k) + 6)
         xfrc = scatter(xfrc, body, c.M[e, e] @ (s.V_next[e] - c.V_free[e]) / c.h)
-    for j, ((i, kind, _), mate) in enumerate(zip(c.pair_list, c.mates, strict=True)):
-        if mate.body < 0 or c.other[j] >= 0:
+    for g, group in enumerate(c.groups):
+        if c.other[g] >= 0 or all(c.mates[j].body < 0 for j in group):
             continue
-        w = pair_wrench(c, s, j)[0]
-        if kind == "link":
-            assert c.kin is not None  # `link_motion` ran: the world has links
-            centre = c.kin.xipos[mate.body]
-        else:
-            centre = mate.frame.x
-        xfrc = scatter(xfrc, mate.body, reaction_of(w, c.frames[i].x, centre))
+        w = group_wrench(c, s, g)[0]
+        for member, j in enumerate(group):
+            (i, kind, _), mate = c.pair_list[j], c.mates[j]
+            if mate.body < 0:
+                continue
+            if kind == "link":
+                assert c.kin is not None  # `link_motion` ran: the world has links
+                centre = c.kin.xipos[mate.body]
+            else:
+                centre = mate.frame.x
+            xfrc = scatter(xfrc, mate.body, reaction_of(w[member], c.frames[i].x, centre))
     return xfrc
 
 

@@ -38,19 +38,20 @@ pairs' forces with opposite sign, applied through `xfrc_applied` before `mjx.ste
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from dano._mjx import mjx
-from dano.contact import active
+from dano.contact import Polytope, active
 from dano.contact.friction import Patch
 from dano.contact.overlap import signed_distance
 from dano.contact.pairs import Body, Frame
 from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
-from dano.sim.contact_solve import ContactProblem, pair_wrench, solve, solved, untouched
+from dano.sim.contact_solve import ContactProblem, each, group_wrench, solve, solved, untouched
 from dano.sim.step import (
     Partner,
     dano_bodies,
@@ -105,26 +106,6 @@ BROAD_MARGIN = 0.01
 of it (plus the indicator width and the partner's own motion over the step), at the pose the free
 motion reaches: a contact made within one step by another contact's impulse larger than this
 margin is seen one step late."""
-
-
-def _support(world: World, p, mate, bodies, i: int, a: Frame, b: Frame, h: float) -> Support:
-    """Pair i's support at the predicted frames (a: the DANO's; b: a DANO partner's predicted frame,
-    else the partner's current one), broad phase included (`_within_reach`: a DANO far from a
-    primitive costs no point evaluation)."""
-    if mate.dano >= 0:
-        return dano_support(bodies[i], bodies[mate.dano], a, b)
-    fn = lambda: primitive_support(mate.shape, bodies[i], a, p.indicator_width)  # noqa: E731
-
-    def far() -> Support:
-        """No point can touch: weightless, held (gain 0) and outside the law's support (s0 = -2), so
-        the active set counts none of them as live."""
-        sup = jax.eval_shape(fn)
-        zero = lambda x: jnp.zeros(x.shape, x.dtype)  # noqa: E731
-        s0 = jnp.full(sup.s0.shape, -2.0, sup.s0.dtype)
-        return Support(zero(sup.at), zero(sup.normal), zero(sup.weight), s0, zero(sup.gain), sup.smooth)
-
-    reach = world.danos[i].reach
-    return jax.lax.cond(_within_reach(mate.shape, reach, a, b, h, p.indicator_width), fn, far)
 
 
 def _within_reach(shape, reach: float, a: Frame, b: Frame, h: float, delta) -> Array:
@@ -185,13 +166,12 @@ def implicit_contacts(
 
     def touching():
         s = solve(c)
-        wrenches, points = [], []
-        for j in range(len(c.pair_list)):
-            w, at = pair_wrench(c, s, j, point=True)
+        wrenches, points = jnp.zeros((len(c.pair_list), 6)), centres
+        for g, group in enumerate(c.groups):
+            w, at = group_wrench(c, s, g, point=True)
             assert at is not None  # asked for
-            wrenches.append(w)
-            points.append(at)
-        return jnp.stack(wrenches), jnp.stack(points)
+            wrenches, points = wrenches.at[jnp.asarray(group)].set(w), points.at[jnp.asarray(group)].set(at)
+        return wrenches, points
 
     return jax.lax.cond(_touching(c), touching, lambda: none)
 
@@ -255,9 +235,9 @@ def _free_motion(world: World, params: Params, m: mjx.Model, d: mjx.Data, free, 
 def _contact_problem(
     world: World, params: Params, m: mjx.Model, d: mjx.Data, mocap_vel, f: _Free, free
 ) -> ContactProblem:
-    """The step's contact problem: the free motion, and each pair's points with the geometry frozen
-    at the pose the free motion reaches (so a contact that the step would reach acts in that step),
-    their lever arms and their partner's velocities."""
+    """The step's contact problem: the free motion, and each group's points (`_group_points`) with
+    the geometry frozen at the pose the free motion reaches (so a contact that the step would reach
+    acts in that step), their lever arms and their partners' velocities."""
     h, n = world.dt, len(world.danos)
     pair_list = pairs(world)
     kin = link_motion(m, d) if world.links else None
@@ -270,28 +250,103 @@ def _contact_problem(
         mate.dano if mate.dano >= 0 else slot.get(k, -1) if kind == "primitive" else -1
         for (_, kind, k), mate in zip(pair_list, mates, strict=True)
     ]
-    supports, patches = [], []
-    for j, (p, (i, _, k), mate) in enumerate(zip(params.contact, pair_list, mates, strict=True)):
-        a = start[i]
-        b = start[other[j]] if other[j] >= 0 else mate.frame
-        if other[j] >= 0 and mate.dano < 0:  # a free primitive, at the pose its free motion reaches
-            mate = Partner(b, primitive_shape(world, k, b), mate.body, -1, mate.inv_mass, mate.radius)
-        sup = _support(world, p, mate, f.bodies, i, a, b, h)
+    groups = pair_groups(pair_list, mates, other)
+    contact, supports, patches = [], [], []
+    for group in groups:
+        j = group[0]
+        i, o, mate = pair_list[j][0], other[j], mates[j]
+        p = _stack([params.contact[j] for j in group])
+        if o >= 0:  # a DANO or a free primitive partner (a group of one), at the pose its free motion reaches
+            b = start[o]
+            shape = None if mate.dano >= 0 else primitive_shape(world, pair_list[j][2], b)
+            sup, patch = _group_points(world, f.bodies, i, o, mate.dano, p, _stack([shape]), _stack([b]), start[i], h)
+        else:
+            shapes = _stack(_padded([mates[j].shape for j in group]))
+            sup, patch = _group_points(world, f.bodies, i, o, -1, p, shapes, _stack([mates[j].frame for j in group]),
+                                       start[i], h)  # fmt: skip
+        contact.append(p)
+        supports.append(sup)
+        patches.append(patch)
+    return ContactProblem(world, params, h, n, pair_list, mates, groups, [other[g[0]] for g in groups], contact,
+                          supports, patches, V, f.M, f.locked, f.frames, f.masses, f.prim_body, kin,
+                          jnp.zeros_like(d.xfrc_applied))  # fmt: skip
+
+
+def pair_groups(pair_list, mates: Sequence[Partner], other: Sequence[int]) -> tuple[tuple[int, ...], ...]:
+    """The pairs computed as one (`ContactProblem.groups`): those of one DANO whose partners move at
+    known velocities (`other` -1) with shapes of one type and of the same array shapes (a
+    polytope's planes aside: `_padded`); each other pair alone. In order of first appearance."""
+    keys: dict = {}
+    for j, ((i, _, _), mate, o) in enumerate(zip(pair_list, mates, other, strict=True)):
+        if o >= 0 or mate.shape is None:
+            key = ("alone", j)
+        else:
+            shape = mate.shape
+            if isinstance(shape, Polytope):
+                shape = Polytope(shape.center, shape.rotation, shape.normals[:1], shape.offsets[:1])
+            leaves, tree = jax.tree_util.tree_flatten(shape)
+            key = (i, tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+        keys.setdefault(key, []).append(j)
+    return tuple(tuple(g) for g in keys.values())
+
+
+def _padded(shapes: list) -> list:
+    """Polytopes with their planes padded to the most among them (a plane repeated: the same solid)."""
+    if not isinstance(shapes[0], Polytope):
+        return shapes
+    k = max(s.normals.shape[0] for s in shapes)
+
+    def pad(x):
+        return jnp.concatenate([x, jnp.repeat(x[-1:], k - x.shape[0], axis=0)])
+
+    return [Polytope(s.center, s.rotation, pad(s.normals), pad(s.offsets)) for s in shapes]
+
+
+def _stack(trees: Sequence):
+    """Pytrees of one structure stacked leaf-wise along a new leading axis."""
+    return jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *trees)
+
+
+def _group_points(world: World, bodies, i: int, o: int, dano: int, p, shapes, frames, a: Frame, h: float):
+    """A group's supports and patches (stacked): DANO i (predicted frame a) against its partners
+    (shapes and frames stacked; `dano` the index of a DANO partner, else -1; `o` where the partner
+    sits in V, else -1), broad phase included (`_within_reach`: a DANO far from all of a group's
+    primitives costs no point evaluation)."""
+
+    def one(p, shape, b: Frame) -> tuple[Support, Patch]:
+        if dano >= 0:
+            sup = dano_support(bodies[i], bodies[dano], a, b)
+        else:
+            sup = primitive_support(shape, bodies[i], a, p.indicator_width)
         zero = jnp.zeros_like(sup.at)
-        if other[j] >= 0:
+        if o >= 0:
             patch = Patch(
                 sup.at - a.x[:, None], sup.at - b.x[:, None], zero, jnp.zeros(3), sup.normal, sup.weight, True
             )
-        else:
-            u_b = b.v[:, None] + jnp.cross(b.w[:, None], sup.at - b.x[:, None], axis=0)
-            patch = Patch(sup.at - a.x[:, None], zero, u_b, b.w, sup.normal, sup.weight)
-            # the partner's own motion over the step brings it nearer (n . u_b > 0) or takes it away
-            ahead = sup.gain * h * jnp.sum(jnp.broadcast_to(sup.normal, u_b.shape) * u_b, axis=0)
-            sup = Support(sup.at, sup.normal, sup.weight, sup.s0 + ahead, sup.gain, sup.smooth)
-        supports.append(sup)
-        patches.append(patch)
-    return ContactProblem(world, params, h, n, pair_list, mates, other, supports, patches, V, f.M, f.locked, f.frames,
-                          f.masses, f.prim_body, kin, jnp.zeros_like(d.xfrc_applied))  # fmt: skip
+            return sup, patch
+        u_b = b.v[:, None] + jnp.cross(b.w[:, None], sup.at - b.x[:, None], axis=0)
+        patch = Patch(sup.at - a.x[:, None], zero, u_b, b.w, sup.normal, sup.weight)
+        # the partner's own motion over the step brings it nearer (n . u_b > 0) or takes it away
+        ahead = sup.gain * h * jnp.sum(jnp.broadcast_to(sup.normal, u_b.shape) * u_b, axis=0)
+        return Support(sup.at, sup.normal, sup.weight, sup.s0 + ahead, sup.gain, sup.smooth), patch
+
+    if dano >= 0:
+        return each(one, p, shapes, frames)
+
+    def far(*args):
+        """No point can touch: weightless, held (gain 0) and outside the law's support (s0 = -2), so
+        the active set counts none of them as live."""
+        zeros = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(one, *args))
+        return eqx.tree_at(lambda t: t[0].s0, zeros, jnp.full(zeros[0].s0.shape, -2.0, zeros[0].s0.dtype))
+
+    reach = world.danos[i].reach
+
+    def member(q, shape, b):
+        """One pair, its points evaluated only where its partner is within reach."""
+        return jax.lax.cond(_within_reach(shape, reach, a, b, h, q.indicator_width), one, far, q, shape, b)
+
+    # one pair at a time (`each`: a loop), so each keeps its own broad phase
+    return each(member, p, shapes, frames)
 
 
 def _integrate(world: World, m: mjx.Model, d: mjx.Data, f: _Free, free, V_next, xfrc) -> mjx.Data:
