@@ -1,6 +1,7 @@
 """A URDF robot (the Franka Panda of example-robot-data) in a DANO scene."""
 
 import dataclasses
+import importlib
 
 import jax
 import jax.numpy as jnp
@@ -92,14 +93,14 @@ def test_a_servo_too_stiff_for_its_joint_is_refused(cube):
 
 
 GROUPED_ARM = """<mujoco><asset>
-  <mesh name="tetra" vertex="0 0 0  0.03 0 0  0 0.03 0  0 0 0.03"/>
+  <mesh name="long" vertex="0.03 0 0  -0.03 0 0  0 0.018 0  0 -0.018 0  0 0 0.012  0 0 -0.012"/>
   <mesh name="octa" vertex="0.02 0 0  -0.02 0 0  0 0.02 0  0 -0.02 0  0 0 0.02  0 0 -0.02"/>
 </asset><worldbody><body name="arm">
   <joint name="yaw" type="hinge" axis="0 0 1" damping="1"/>
   <geom name="east" type="box" pos="0.048 0 0.03" size="0.02 0.02 0.02" mass="0.2"/>
   <geom name="west" type="box" pos="-0.046 0.01 0.03" size="0.018 0.025 0.015" euler="0 0 20" mass="0.2"/>
   <geom name="far" type="box" pos="0.6 0.6 0.03" size="0.02 0.02 0.02" mass="0.2"/>
-  <geom name="north" type="mesh" mesh="tetra" pos="0.01 0.028 0.02" mass="0.1"/>
+  <geom name="north" type="mesh" mesh="long" pos="0.005 0.0465 0.025" euler="0 10 0" mass="0.1"/>
   <geom name="south" type="mesh" mesh="octa" pos="0 -0.048 0.03" mass="0.1"/>
   <geom name="top" type="capsule" fromto="-0.02 0 0.0645 0.02 0 0.0645" size="0.007" mass="0.1"/>
 </body></worldbody></mujoco>"""
@@ -107,12 +108,14 @@ GROUPED_ARM = """<mujoco><asset>
 
 @pytest.mark.slow
 def test_link_pairs_computed_as_groups_equal_pair_by_pair(cube, tmp_path, monkeypatch):
-    # A one-joint arm whose boxes, capsule and two convex meshes (4 and 8 planes: padded to 8 in
-    # their group) press into a tilted cube from every side, and a box far away. The step computes
+    # A one-joint arm whose boxes, capsule and two convex meshes (octahedra of 8 planes) press
+    # into a tilted cube from every side, and a box far away. The step computes
     # the boxes as one group, the meshes as another (`pair_groups`); pair by pair it must give the
     # same wrench per link and the same step. The grouped step's derivative w.r.t. friction
     # against central differences.
     from dano.sim import implicit
+
+    step_module = importlib.import_module("dano.sim.step")  # `dano.sim.step` is also the step function
     from dano.sim.step import scaled_model
 
     (tmp_path / "arm.xml").write_text(GROUPED_ARM)
@@ -131,22 +134,27 @@ def test_link_pairs_computed_as_groups_equal_pair_by_pair(cube, tmp_path, monkey
 
     def contacts():
         m = scaled_model(world, sim.params, sim.mjx_model)
-        return jax.jit(lambda: implicit.implicit_contacts(world, sim.params, m, sim.data))()
+        both = (implicit.implicit_contacts, step_module.explicit_contacts)
+        return jax.jit(lambda: [f(world, sim.params, m, sim.data) for f in both])()
 
-    wrench, point = contacts()
+    (wrench, point), explicit = contacts()
     derivative = jax.jit(jax.jacfwd(with_value(step), has_aux=True))
     jac, x = derivative(mu0)
     eps = 1e-6
     fd = (derivative(mu0 + eps)[1] - derivative(mu0 - eps)[1]) / (2 * eps)
-    alone = lambda pair_list, mates, other: tuple((j,) for j in range(len(pair_list)))  # noqa: E731
+    alone = lambda pair_list, *_: tuple((j,) for j in range(len(pair_list)))  # noqa: E731
     monkeypatch.setattr(implicit, "pair_groups", alone)
-    wrench1, point1 = contacts()
+    monkeypatch.setattr(step_module, "pair_groups", alone)
+    (wrench1, point1), explicit1 = contacts()
     x1 = jax.jit(step)(mu0)
 
-    force = [float(np.linalg.norm(wrench[j, :3])) for j, (_, kind, _) in enumerate(pairs(world)) if kind == "link"]
-    assert force[2] == 0.0 and min(force[:2] + force[3:]) > 0.1, force  # the far box alone has none
+    for w in (wrench, explicit[0]):
+        force = [float(np.linalg.norm(w[j, :3])) for j, (_, kind, _) in enumerate(pairs(world)) if kind == "link"]
+        assert force[2] == 0.0 and min(force[:2] + force[3:]) > 0.1, force  # the far box alone has none
     np.testing.assert_allclose(wrench, wrench1, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(point, point1, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(x, x1, rtol=1e-10, atol=1e-12)
+    for a, b in zip(explicit, explicit1, strict=True):  # the explicit step's pairs (eqs. 11-16), grouped alike
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
     assert np.max(np.abs(np.asarray(jac))) > 1e-3  # friction matters to the step
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * float(np.max(np.abs(fd))))

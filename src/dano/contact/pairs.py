@@ -114,7 +114,7 @@ def dano_points(A: Body, B: Body, a: Frame, b: Frame, mode: ForceMode) -> PointS
     return PointSet(at, psi, normal)
 
 
-def near(body: Body, a: Frame, centre: Float[Array, " 3"], radius: float) -> Array:
+def near(body: Body, a: Frame, centre: Float[Array, " 3"], radius: float | Float[Array, ""]) -> Array:
     """Broad phase: the DANO's bounding sphere meets the ball of `radius` around `centre`."""
     reach = jnp.max(safe_norm(body.points, axis=0)) + radius
     return safe_norm(a.x - centre) < reach

@@ -7,7 +7,7 @@ its solve (`solved`): over each pair's active set (`dano.contact.active`), check
 the points it dropped, or over all points once one of them turns out live.
 """
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -22,6 +22,7 @@ from dano.contact.pairs import Frame
 from dano.contact.pairs import reaction as reaction_of
 from dano.contact.support import Support, normal_terms, normal_velocity, overlap
 from dano.math import normalize
+from dano.sim.groups import each
 from dano.sim.newton import minimize_convex, newton, run_if, solve_implicit
 from dano.sim.step import Partner, scatter
 from dano.sim.world import Params, World
@@ -62,23 +63,12 @@ def _centroid(patch: Patch, psi: Array) -> Patch:
     return Patch(mean(patch.r_a), mean(patch.r_b), mean(patch.u_b), patch.w_b, normal, total[None], patch.joint)
 
 
-def each(fn, *args) -> Any:
-    """fn over the leading axis of `args` (a group's stacked pairs, `ContactProblem.groups`), results
-    stacked: a loop (`lax.map`), so the program holds one copy of fn; for a group of one, fn itself
-    on the one pair. (A loop, not `vmap`: on the Panda's groups of 8 and 9 links the loop compiled
-    in 23 s and ran 200 frames in 3.4 s, `vmap` 27 s and 4.7 s; batched small products are slower
-    on a CPU than a loop of them.)"""
-    if jax.tree_util.tree_leaves(args)[0].shape[0] == 1:
-        return jax.tree_util.tree_map(lambda x: x[None], fn(*jax.tree_util.tree_map(lambda x: x[0], args)))
-    return jax.lax.map(lambda a: fn(*a), args)
-
-
 class ContactProblem(NamedTuple):
     """One step's contact problem, as the solve sees it (built by `dano.sim.implicit.implicit_step`).
 
-    The pairs come in groups (`groups`): the pairs of one DANO whose partners move at known
-    velocities and have shapes of one kind and size (a robot's finger boxes; its meshes, their
-    planes padded to the most) are stacked leaf-wise along a leading axis and computed as one
+    The pairs come in groups (`dano.sim.groups`): the pairs of one DANO whose partners move at known
+    velocities and have shapes of one kind and size (a robot's finger boxes; its meshes of as many
+    planes) are stacked leaf-wise along a leading axis and computed as one
     (`each`), so the step's program holds one copy of the contact per group, not per pair; every
     other pair is a group of its own.
 

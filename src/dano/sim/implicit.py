@@ -45,15 +45,15 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano._mjx import mjx
-from dano.contact import Polytope, active
+from dano.contact import active
 from dano.contact.friction import Patch
 from dano.contact.overlap import signed_distance
 from dano.contact.pairs import Body, Frame
 from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
-from dano.sim.contact_solve import ContactProblem, each, group_wrench, solve, solved, untouched
+from dano.sim.contact_solve import ContactProblem, group_wrench, solve, solved, untouched
+from dano.sim.groups import each, pair_groups, stack
 from dano.sim.step import (
-    Partner,
     dano_bodies,
     dano_frames,
     link_motion,
@@ -255,14 +255,14 @@ def _contact_problem(
     for group in groups:
         j = group[0]
         i, o, mate = pair_list[j][0], other[j], mates[j]
-        p = _stack([params.contact[j] for j in group])
+        p = stack([params.contact[j] for j in group])
         if o >= 0:  # a DANO or a free primitive partner (a group of one), at the pose its free motion reaches
             b = start[o]
             shape = None if mate.dano >= 0 else primitive_shape(world, pair_list[j][2], b)
-            sup, patch = _group_points(world, f.bodies, i, o, mate.dano, p, _stack([shape]), _stack([b]), start[i], h)
+            sup, patch = _group_points(world, f.bodies, i, o, mate.dano, p, stack([shape]), stack([b]), start[i], h)
         else:
-            shapes = _stack(_padded([mates[j].shape for j in group]))
-            sup, patch = _group_points(world, f.bodies, i, o, -1, p, shapes, _stack([mates[j].frame for j in group]),
+            shapes = stack([mates[j].shape for j in group])
+            sup, patch = _group_points(world, f.bodies, i, o, -1, p, shapes, stack([mates[j].frame for j in group]),
                                        start[i], h)  # fmt: skip
         contact.append(p)
         supports.append(sup)
@@ -270,41 +270,6 @@ def _contact_problem(
     return ContactProblem(world, params, h, n, pair_list, mates, groups, [other[g[0]] for g in groups], contact,
                           supports, patches, V, f.M, f.locked, f.frames, f.masses, f.prim_body, kin,
                           jnp.zeros_like(d.xfrc_applied))  # fmt: skip
-
-
-def pair_groups(pair_list, mates: Sequence[Partner], other: Sequence[int]) -> tuple[tuple[int, ...], ...]:
-    """The pairs computed as one (`ContactProblem.groups`): those of one DANO whose partners move at
-    known velocities (`other` -1) with shapes of one type and of the same array shapes (a
-    polytope's planes aside: `_padded`); each other pair alone. In order of first appearance."""
-    keys: dict = {}
-    for j, ((i, _, _), mate, o) in enumerate(zip(pair_list, mates, other, strict=True)):
-        if o >= 0 or mate.shape is None:
-            key = ("alone", j)
-        else:
-            shape = mate.shape
-            if isinstance(shape, Polytope):
-                shape = Polytope(shape.center, shape.rotation, shape.normals[:1], shape.offsets[:1])
-            leaves, tree = jax.tree_util.tree_flatten(shape)
-            key = (i, tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
-        keys.setdefault(key, []).append(j)
-    return tuple(tuple(g) for g in keys.values())
-
-
-def _padded(shapes: list) -> list:
-    """Polytopes with their planes padded to the most among them (a plane repeated: the same solid)."""
-    if not isinstance(shapes[0], Polytope):
-        return shapes
-    k = max(s.normals.shape[0] for s in shapes)
-
-    def pad(x):
-        return jnp.concatenate([x, jnp.repeat(x[-1:], k - x.shape[0], axis=0)])
-
-    return [Polytope(s.center, s.rotation, pad(s.normals), pad(s.offsets)) for s in shapes]
-
-
-def _stack(trees: Sequence):
-    """Pytrees of one structure stacked leaf-wise along a new leading axis."""
-    return jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *trees)
 
 
 def _group_points(world: World, bodies, i: int, o: int, dano: int, p, shapes, frames, a: Frame, h: float):

@@ -25,6 +25,7 @@ from dano.contact.overlap import Primitive
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
 from dano.math import normalize, quat_to_mat
+from dano.sim.groups import each, pair_groups, stack
 from dano.sim.world import LinkGeom, Params, World, pairs
 
 
@@ -159,17 +160,19 @@ def partners(world: World, d: mjx.Data, mocap_vel=None, kin: mjx.Data | None = N
     return tuple(PARTNERS[kind](world, k, d, kin, mocap_vel) for _, kind, k in pairs(world))
 
 
-def pair_points(world: World, p: ContactParams, partner: Partner, bodies, i: int, a: Frame, b: Frame) -> PointSet:
-    """The contact points of DANO i (frame a) with its partner (frame b), broad phase included."""
-    if partner.dano >= 0:
-        return dano_points(bodies[i], bodies[partner.dano], a, b, world.force_mode)
-    shape = partner.shape
-    assert shape is not None  # only a DANO partner has none
+def pair_points(
+    world: World, p: ContactParams, shape, bodies, i: int, a: Frame, b: Frame, dano: int, radius
+) -> PointSet:
+    """The contact points of DANO i (frame a) with its partner (frame b; `dano` its DANO index, else
+    -1 and `shape` its geometry), broad phase included where `radius` (the partner's bounding
+    radius, `Partner.radius`) is not 0."""
+    if dano >= 0:
+        return dano_points(bodies[i], bodies[dano], a, b, world.force_mode)
     fn = lambda: primitive_points(shape, bodies[i], a, p.indicator_width, world.force_mode)  # noqa: E731
-    if not partner.radius:
+    if isinstance(radius, float) and not radius:
         return fn()
     zero = jax.eval_shape(fn)
-    return jax.lax.cond(near(bodies[i], a, b.x, partner.radius), fn, lambda: _zeros(zero))
+    return jax.lax.cond(near(bodies[i], a, b.x, radius), fn, lambda: _zeros(zero))
 
 
 def _zeros(shapes) -> PointSet:
@@ -195,25 +198,51 @@ def implicit_damper(p: ContactParams, psi, inv_m_eff, dt: float) -> ContactParam
 
 
 def explicit_pair_wrench(
-    world: World, p: ContactParams, partner: Partner, bodies, frames, i: int
+    world: World, p: ContactParams, shape, b: Frame, inv_mass, radius, dano: int, bodies, frames, i: int
 ) -> tuple[Float[Array, " 6"], Float[Array, " 3"]]:
-    """The explicit step's wrench on DANO i from its partner (eqs. 11-16): force and torque about
-    the DANO's centre of mass, world, with the damper made linearly implicit; and where it acts
-    (the overlap's centroid chi, world; the DANO's centre where there is no overlap)."""
+    """The explicit step's wrench on DANO i from its partner (frame b; `pair_points` for the rest;
+    `inv_mass` 1 / its mass where it is not a DANO) (eqs. 11-16): force and torque about the DANO's
+    centre of mass, world, with the damper made linearly implicit; and where it acts (the overlap's
+    centroid chi, world; the DANO's centre where there is no overlap)."""
     a = frames[i]
-    b = frames[partner.dano] if partner.dano >= 0 else partner.frame
-    pts = pair_points(world, p, partner, bodies, i, a, b)
+    pts = pair_points(world, p, shape, bodies, i, a, b, dano, radius)
     psi = jnp.sum(pts.psi)
     chi = pts.at @ pts.psi / jnp.where(psi > 0, psi, 1.0)
     normal = pts.normal[:, 0] if pts.normal.shape[1] == 1 else _mean_normal(pts)
     inv_m = inverse_effective_mass(bodies[i], a, chi, normal)
-    if partner.dano >= 0:
-        inv_m = inv_m + inverse_effective_mass(bodies[partner.dano], b, chi, normal)
+    if dano >= 0:
+        inv_m = inv_m + inverse_effective_mass(bodies[dano], b, chi, normal)
     else:
-        inv_m = inv_m + partner.inv_mass
+        inv_m = inv_m + inv_mass
     p = implicit_damper(p, psi, inv_m, world.dt)
     w = contact_wrench(p, pts.psi, pts.at, pts.normal, a.x, a.v, a.w, b.x, b.v, b.w)
     return jnp.concatenate([w.force, w.torque]), jnp.where(psi > 0, chi, a.x)
+
+
+def explicit_groups(world: World, params: Params, d: mjx.Data, mocap_vel=None, kin: mjx.Data | None = None):
+    """The explicit step's pairs in groups (`dano.sim.groups`): per group, its pairs' indices (into
+    `pairs`), their partners, and their wrenches on their DANO (k, 6) and where they act (k, 3)
+    (`explicit_pair_wrench`)."""
+    pair_list = pairs(world)
+    mates = partners(world, d, mocap_vel, kin)
+    frames, bodies = dano_frames(world, d), dano_bodies(world, params)
+    # a DANO partner alone; links apart from primitives (only links have a broad phase: `Partner.radius`)
+    key = [m.dano if m.dano >= 0 else -1 for m in mates]
+    out = []
+    for group in pair_groups(pair_list, mates, key, [m.radius > 0 for m in mates]):
+        mate = mates[group[0]]
+        i, dano, broad = pair_list[group[0]][0], mate.dano, mate.radius > 0
+
+        def one(p, shape, b, inv_mass, radius, i=i, dano=dano, broad=broad):
+            radius = radius if broad else 0.0  # no broad phase: none traced
+            return explicit_pair_wrench(world, p, shape, b, inv_mass, radius, dano, bodies, frames, i)
+
+        shapes = stack([mates[j].shape for j in group]) if dano < 0 else None
+        radii = stack([mates[j].radius for j in group])
+        inputs = (stack([params.contact[j] for j in group]), shapes, stack([mates[j].frame for j in group]))
+        wrench, at = each(one, *inputs, stack([mates[j].inv_mass for j in group]), radii)
+        out.append((group, [mates[j] for j in group], wrench, at))
+    return frames, out
 
 
 def _mean_normal(pts: PointSet) -> Array:
@@ -243,19 +272,20 @@ def contact_xfrc(
     if world.links:
         assert m is not None, "a world with a robot needs the model `m` (its link poses)"
         kin = link_motion(m, d)
-    frames, bodies = dano_frames(world, d), dano_bodies(world, params)
-    for p, (i, kind, _), partner in zip(params.contact, pairs(world), partners(world, d, mocap_vel, kin), strict=True):
-        w = explicit_pair_wrench(world, p, partner, bodies, frames, i)[0]
-        xfrc = scatter(xfrc, world.dano_body[i], w)
-        if partner.dano >= 0:
-            xfrc = scatter(xfrc, world.dano_body[partner.dano], reaction(w, frames[i].x, frames[partner.dano].x))
-        elif partner.body >= 0:
-            if kind == "link":
-                assert kin is not None  # `link_motion` ran: the world has links
-                centre = kin.xipos[partner.body]
-            else:
-                centre = partner.frame.x
-            xfrc = scatter(xfrc, partner.body, reaction(w, frames[i].x, centre))
+    frames, groups = explicit_groups(world, params, d, mocap_vel, kin)
+    for group, mates, wrench, _ in groups:
+        for j, partner, w in zip(group, mates, wrench, strict=True):
+            i, kind, _ = pairs(world)[j]
+            xfrc = scatter(xfrc, world.dano_body[i], w)
+            if partner.dano >= 0:
+                xfrc = scatter(xfrc, world.dano_body[partner.dano], reaction(w, frames[i].x, frames[partner.dano].x))
+            elif partner.body >= 0:
+                if kind == "link":
+                    assert kin is not None  # `link_motion` ran: the world has links
+                    centre = kin.xipos[partner.body]
+                else:
+                    centre = partner.frame.x
+                xfrc = scatter(xfrc, partner.body, reaction(w, frames[i].x, centre))
     return xfrc
 
 
@@ -265,14 +295,11 @@ def explicit_contacts(
     """`dano.sim.implicit.implicit_contacts` for the explicit step: per pair its wrench on its DANO
     (P, 6) and where it acts (P, 3)."""
     kin = link_motion(m, d) if world.links else None
-    frames, bodies = dano_frames(world, d), dano_bodies(world, params)
-    out = [
-        explicit_pair_wrench(world, p, partner, bodies, frames, i)
-        for p, (i, _, _), partner in zip(params.contact, pairs(world), partners(world, d, mocap_vel, kin), strict=True)
-    ]
-    if not out:
-        return jnp.zeros((0, 6)), jnp.zeros((0, 3))
-    return jnp.stack([w for w, _ in out]), jnp.stack([at for _, at in out])
+    n = len(pairs(world))
+    wrenches, points = jnp.zeros((n, 6)), jnp.zeros((n, 3))
+    for group, _, wrench, at in explicit_groups(world, params, d, mocap_vel, kin)[1]:
+        wrenches, points = wrenches.at[jnp.asarray(group)].set(wrench), points.at[jnp.asarray(group)].set(at)
+    return wrenches, points
 
 
 def scaled_model(world: World, params: Params, m: mjx.Model) -> mjx.Model:

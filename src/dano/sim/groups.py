@@ -1,0 +1,53 @@
+"""Pairs computed as one: a DANO's partners of one shape kind stacked, so a step's program holds
+one copy of the contact per group instead of one per pair.
+
+A robot brings many partners of a few kinds (the Panda: 9 convex meshes of 200 or 300 planes and
+8 finger boxes). Each pair unrolled in Python made the step's program grow with the pairs: the
+Panda sweeping a cube with the implicit step (18 pairs, 200 frames; `dano.sim.run.profile`) lowered
+in 14.4 s and compiled in 52.1 s. Stacked leaf-wise along a leading axis (`stack`) and computed by
+one loop over the group (`each`), its 4 groups lower in 3.8 s and compile in 21.3 s, run 200 frames
+in 1.9 s instead of 2.8 s, and give the same trajectory; with the explicit step (100 frames) 3.3 s
+and 17.9 s become 2.4 s and 12.1 s, the run the same (1.15 s).
+"""
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+
+def pair_groups(pair_list, mates: Sequence, other: Sequence[int], apart: Sequence = ()) -> tuple[tuple[int, ...], ...]:
+    """The pairs computed as one (indices into `pair_list`, in order of first appearance): those
+    of one DANO whose partners (`mates`, `dano.sim.step.Partner`) move at known velocities (`other`
+    -1: not solved for with the DANO) with shapes of one type and of the same array shapes (convex
+    meshes of as many planes) and the same `apart` (a hashable per pair, if given); each other pair
+    alone. Polytopes are not padded to the most planes: on the Panda (200 and 300) that cost the
+    explicit step's rollout 20 % of its run time for no gain in compile time."""
+    keys: dict = {}
+    apart = tuple(apart) or (None,) * len(pair_list)
+    for j, ((i, _, _), mate, o, tag) in enumerate(zip(pair_list, mates, other, apart, strict=True)):
+        if o >= 0 or mate.shape is None:
+            key = ("alone", j)
+        else:
+            leaves, tree = jax.tree_util.tree_flatten(mate.shape)
+            key = (i, tag, tree, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves))
+        keys.setdefault(key, []).append(j)
+    return tuple(tuple(g) for g in keys.values())
+
+
+def stack(trees: Sequence):
+    """Pytrees of one structure stacked leaf-wise along a new leading axis."""
+    return jax.tree_util.tree_map(lambda *x: jnp.stack([jnp.asarray(v) for v in x]), *trees)
+
+
+def each(fn: Callable, *args) -> Any:
+    """fn over the leading axis of `args` (a group's stacked pairs), results stacked: a loop
+    (`lax.map`), so the program holds one copy of fn and a pair's `lax.cond` (its broad phase) still
+    skips its work; for a group of one, fn itself on the one pair. (A loop, not `vmap`: on the
+    Panda sweeping a cube, its meshes padded into one group, the loop compiled in 23 s and ran 200
+    frames in 3.4 s, `vmap` in 27 s and 4.7 s: batched small products are slower on a CPU than a
+    loop of them.)"""
+    if jax.tree_util.tree_leaves(args)[0].shape[0] == 1:
+        return jax.tree_util.tree_map(lambda x: x[None], fn(*jax.tree_util.tree_map(lambda x: x[0], args)))
+    return jax.lax.map(lambda a: fn(*a), args)
