@@ -250,20 +250,24 @@ def _contact_problem(
         mate.dano if mate.dano >= 0 else slot.get(k, -1) if kind == "primitive" else -1
         for (_, kind, k), mate in zip(pair_list, mates, strict=True)
     ]
+
+    def partner(j: int):
+        """Pair j's partner frame and shape; one solved for with the DANO at the pose its free motion
+        reaches (a DANO has no shape)."""
+        o, mate = other[j], mates[j]
+        if o < 0:
+            return mate.frame, mate.shape
+        return start[o], None if mate.dano >= 0 else primitive_shape(world, pair_list[j][2], start[o])
+
     groups = pair_groups(pair_list, mates, other)
     contact, supports, patches = [], [], []
     for group in groups:
         j = group[0]
-        i, o, mate = pair_list[j][0], other[j], mates[j]
-        p = stack([params.contact[j] for j in group])
-        if o >= 0:  # a DANO or a free primitive partner (a group of one), at the pose its free motion reaches
-            b = start[o]
-            shape = None if mate.dano >= 0 else primitive_shape(world, pair_list[j][2], b)
-            sup, patch = _group_points(world, f.bodies, i, o, mate.dano, p, stack([shape]), stack([b]), start[i], h)
-        else:
-            shapes = stack([mates[j].shape for j in group])
-            sup, patch = _group_points(world, f.bodies, i, o, -1, p, shapes, stack([mates[j].frame for j in group]),
-                                       start[i], h)  # fmt: skip
+        i, p = pair_list[j][0], stack([params.contact[j] for j in group])
+        frames, shapes = zip(*[partner(j) for j in group], strict=True)
+        sup, patch = _group_points(
+            world, f.bodies, i, other[j], mates[j].dano, p, stack(shapes), stack(frames), start[i], h
+        )
         contact.append(p)
         supports.append(sup)
         patches.append(patch)
