@@ -227,9 +227,8 @@ def explicit_groups(world: World, params: Params, d: mjx.Data, mocap_vel=None, k
     mates = partners(world, d, mocap_vel, kin)
     frames, bodies = dano_frames(world, d), dano_bodies(world, params)
     # a DANO partner alone; links apart from primitives (only links have a broad phase: `Partner.radius`)
-    key = [m.dano if m.dano >= 0 else -1 for m in mates]
     out = []
-    for group in pair_groups(pair_list, mates, key, [m.radius > 0 for m in mates]):
+    for group in pair_groups(pair_list, mates, [m.dano for m in mates], [m.radius > 0 for m in mates]):
         mate = mates[group[0]]
         i, dano, broad = pair_list[group[0]][0], mate.dano, mate.radius > 0
 
