@@ -2,7 +2,7 @@
 
 `ContactProblem` holds what the step has found before the solve: the unknowns' free motion V~ and
 mass matrix, each pair's support and patch (all its points) and who its partner is. The functions
-below are the objective of the module docstring of `dano.sim.implicit` over it, pair by pair, and
+below are the objective of the module docstring of `dano.sim.implicit` over it, group by group, and
 its solve (`solved`): over each pair's active set (`dano.contact.active`), checked exactly against
 the points it dropped, or over all points once one of them turns out live.
 """
@@ -33,8 +33,8 @@ the previous one delivered (so that they include the support's answer to frictio
 
 
 class _Sets(eqx.Module):
-    """Each pair's support and patch, the damper's lagged overlaps and the normal velocities at V~:
-    all the points, or their active sets."""
+    """Per group (`ContactProblem.groups`), its pairs' supports and patches, the damper's lagged
+    overlaps and the normal velocities at V~, stacked: all the points, or their active sets."""
 
     supports: tuple
     patches: tuple
