@@ -125,12 +125,14 @@ class PandaPusher(AbstractPusher):
     """The 7-joint Franka Panda of example-robot-data, its collision meshes touching the DANO through
     the contact model; controls are the arm's position-servo targets (fingers held), bounded by the
     joint ranges, with the servo torque kp (target − q) − kv q̇ within the Panda's torque limits.
-    Its links are driven by servos whose reactions reach MuJoCo explicitly, so it keeps the
-    explicit step; the goal is a cost by default: the contact through its hand's faceted hull is
-    too rough near the goal for the augmented Lagrangian to drive the miss below 1e-4 m."""
+    Like the sphere it runs ten implicit steps of 8 ms per frame: its servo-driven links take the
+    contact's reactions explicitly, which the arm's mass and servos hold at that step (the warm
+    start's bunny ends 1.4 mm from where 160 explicit substeps of 0.5 ms take it; README). The goal
+    is a cost by default: the contact through its hand's faceted hull is too rough near the goal
+    for the augmented Lagrangian to drive the miss below 1e-4 m."""
 
     name = "panda"
-    integrator, substep = Integrator.explicit, 5e-4
+    integrator, substep = Integrator.implicit, 8e-3
     goal_as_constraint = False
 
     def place(self, scene: Scene, dano: DANO, direction: np.ndarray) -> Scene:
@@ -188,10 +190,10 @@ class PandaPusher(AbstractPusher):
 PUSHERS: dict[str, AbstractPusher] = {p.name: p for p in (SpherePusher(), PandaPusher())}
 """The robots `push_problem` knows by name; any other `AbstractPusher` can be passed itself."""
 ROBOT_STEP = {name: (p.integrator, p.substep) for name, p in PUSHERS.items()}
-"""Each robot's default simulator step for the push: (integrator, step length in s). The sphere
-is solved jointly with the DANO by the implicit step, whose derivatives at ten 8 ms steps per
-0.08 s frame cost about a seventh of the explicit step's 160 substeps of 0.5 ms (a frame's
-Jacobian 51 vs 376 ms, measured beside another job when the default changed)."""
+"""Each robot's default simulator step for the push: (integrator, step length in s). Both run the
+implicit step, whose derivatives at ten 8 ms steps per 0.08 s frame cost about a seventh of the
+explicit step's 160 substeps of 0.5 ms (the sphere: a frame's Jacobian 51 vs 376 ms, measured
+beside another job when its default changed; the Panda push: 4.4 vs 13.1 s an iteration, README)."""
 
 
 def pusher(robot: "str | AbstractPusher") -> AbstractPusher:
