@@ -5,8 +5,9 @@
 
 Each push is solved cold (JIT compilation included) and, with --warm, again (the same problem,
 compiled); with --step (e.g. explicit:0.0005) each robot is solved again at that simulator step,
-a row of its own beside its default's. The set-up's and the cold solve's XLA compile times are printed apart (JAX's
-`backend_compile_duration` events: the compilation proper, not the Python tracing before it).
+a row of its own beside its default's. The set-up's and the cold solve's XLA compile times are
+printed apart (JAX's `backend_compile_duration` events: the compilation proper, not the Python
+tracing before it); "all s" is the set-up and the cold solve together.
 The object is the Stanford bunny DANO (0.5 kg), goal 10 cm ahead (sphere) or 8 cm aside (Panda);
 each robot's default goal handling (a constraint for the sphere, a cost for the Panda).
 """
