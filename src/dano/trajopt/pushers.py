@@ -191,9 +191,10 @@ PUSHERS: dict[str, AbstractPusher] = {p.name: p for p in (SpherePusher(), PandaP
 """The robots `push_problem` knows by name; any other `AbstractPusher` can be passed itself."""
 ROBOT_STEP = {name: (p.integrator, p.substep) for name, p in PUSHERS.items()}
 """Each robot's default simulator step for the push: (integrator, step length in s). Both run the
-implicit step, whose derivatives at ten 8 ms steps per 0.08 s frame cost about a seventh of the
-explicit step's 160 substeps of 0.5 ms (the sphere: a frame's Jacobian 51 vs 376 ms, measured
-beside another job when its default changed; the Panda push: 4.4 vs 13.1 s an iteration, README)."""
+implicit step at ten 8 ms steps per 0.08 s frame instead of the explicit step's 160 substeps of
+0.5 ms: the sphere's frame Jacobian costs a seventh (51 vs 376 ms, measured beside another job
+when its default changed), the Panda push's iteration a third (4.4 vs 13.1 s on average, the
+first one's compile included; README)."""
 
 
 def pusher(robot: "str | AbstractPusher") -> AbstractPusher:
