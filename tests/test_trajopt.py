@@ -61,6 +61,34 @@ def test_ilqr_solves_linear_quadratic_problem_to_the_riccati_solution(lq):
     assert sol.iterations <= 3  # one Newton step, then the convergence check
 
 
+def test_a_failed_search_raises_the_regularisation_until_the_step_shortens(lq):
+    """After a failed line search the next Levenberg term is the first tenfold level whose
+    feedforward step is at most 0.9 of the failed one's: the level below it leaves the step within
+    a tenth, so a search along it would repeat the failure. Checked against the Riccati pass itself
+    on the LQ problem, from 1e-9 (far below its Q_uu, ~0.1 to 10) and from a level that already
+    shortens it."""
+    from dano.trajopt.ilqr import _shorter
+    from dano.trajopt.pieces import backward, expand, pieces
+
+    problem, _, x0 = lq
+    fn = pieces(problem, N, M)
+    us = jnp.zeros((T, M))
+    xs = rollout(problem, x0, us)
+    expansion = fn.call(expand, xs, us, jnp.zeros((T, 0)), jnp.zeros(0), 10.0, None)
+
+    def size(reg):
+        k, _, _, failed = fn.call(backward, *expansion, reg)
+        assert not bool(failed)
+        return float(jnp.max(jnp.abs(k)))
+
+    reg = _shorter(fn, expansion, 1e-9, size(1e-9), 1e8)
+    assert reg > 1e-8  # levels that changed nothing were passed over
+    assert size(reg) <= 0.9 * size(1e-9) < size(reg / 10)
+    assert _shorter(fn, expansion, 10.0, size(10.0), 1e8) == pytest.approx(100.0)  # tenfold was enough
+    assert size(100.0) <= 0.9 * size(10.0)
+    assert _shorter(fn, expansion, 1e8, size(1e8), 1e8) > 1e8  # past the limit: the solve stalls
+
+
 @pytest.mark.parametrize("batch", [1, 3])
 def test_jacobians_taken_in_time_batches_give_the_same_solution(lq, batch):
     problem, matrices, x0 = lq
