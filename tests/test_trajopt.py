@@ -1,6 +1,5 @@
 """Constrained iLQR (augmented Lagrangian): the LQ solution, constraints, infeasibility, and the push task."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -61,6 +60,24 @@ def test_ilqr_solves_linear_quadratic_problem_to_the_riccati_solution(lq):
     assert sol.iterations <= 3  # one Newton step, then the convergence check
 
 
+def test_jacobians_compiled_ahead_are_the_dynamics_matrices(lq):
+    """`compile_ahead` compiles the dynamics Jacobians in a thread once per dynamics and shapes;
+    `jacobians_along` then gives A and B of the linear dynamics. A compilation that fails there
+    (a state of the wrong size) raises nowhere: the call that needs a program compiles its own."""
+    from dano.trajopt import pieces as P
+
+    problem, (A, B, *_), x0 = lq
+    flow = problem.flow
+    for n in (N, N, N + 1):
+        P.compile_ahead(flow, n, M, None)
+    assert len(P._AHEAD[problem.dynamics]) == 2
+    us = jnp.asarray(np.random.default_rng(2).normal(size=(T, M)))
+    JA, JB = P.jacobians_along(flow, rollout(problem, x0, us), us, None)
+    np.testing.assert_allclose(JA, np.broadcast_to(A, (T, N, N)), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(JB, np.broadcast_to(B, (T, N, M)), rtol=0, atol=1e-14)
+    P._finish_compiling()  # the failing one has finished too
+
+
 def test_a_failed_search_raises_the_regularisation_until_the_step_shortens(lq):
     """After a failed line search the next Levenberg term is the first tenfold level whose
     feedforward step is at most 0.9 of the failed one's: the level below it leaves the step within
@@ -68,13 +85,16 @@ def test_a_failed_search_raises_the_regularisation_until_the_step_shortens(lq):
     on the LQ problem, from 1e-9 (far below its Q_uu, ~0.1 to 10) and from a level that already
     shortens it."""
     from dano.trajopt.ilqr import _shorter
-    from dano.trajopt.pieces import backward, expand, pieces
+    from dano.trajopt.pieces import backward, expand, jacobians, pieces
 
     problem, _, x0 = lq
     fn = pieces(problem, N, M)
     us = jnp.zeros((T, M))
     xs = rollout(problem, x0, us)
-    expansion = fn.call(expand, xs, us, jnp.zeros((T, 0)), jnp.zeros(0), 10.0, None)
+    expansion = (
+        *fn.flow.call(jacobians, xs, us, None),
+        *fn.call(expand, xs, us, jnp.zeros((T, 0)), jnp.zeros(0), 10.0),
+    )
 
     def size(reg):
         k, _, _, failed = fn.call(backward, *expansion, reg)
@@ -142,6 +162,11 @@ def cube():
 
 
 def test_push_dynamics_jacobian_matches_central_differences(cube):
+    """The solver's own frame Jacobians (`jacobians_along`, compiled ahead while the push was set
+    up), chained over the horizon, against central differences of the rolled-out final position."""
+    from dano.trajopt.pieces import jacobians_along
+    from dano.trajopt.push import default_options
+
     push = push_problem(cube, "sphere", PushTask(goal=(0.05, 0.0), horizon=4))
     x0, us = jnp.asarray(push.x0), jnp.asarray(push.initial_controls)
     a = push.sim.world.dano_qpos[0]
@@ -150,7 +175,12 @@ def test_push_dynamics_jacobian_matches_central_differences(cube):
         return rollout(push.problem, x0, u)[-1, a : a + 2]
 
     direction = jnp.asarray(np.random.default_rng(1).normal(size=us.shape))
-    exact = jnp.tensordot(jax.jacfwd(final)(us), direction, axes=2)
+    xs = rollout(push.problem, x0, us)
+    A, B = jacobians_along(push.problem.flow, xs, us, default_options("sphere").jacobian_batch)
+    dx = jnp.zeros(x0.shape[0])
+    for t in range(us.shape[0]):  # the linearised rollout
+        dx = A[t] @ dx + B[t] @ direction[t]
+    exact = dx[a : a + 2]
     assert float(jnp.linalg.norm(exact)) > 1e-4  # the warm start is in contact: controls move the cube
     numeric = central_difference(lambda s: final(us + s * direction), 0.0, 1e-4)
     np.testing.assert_allclose(exact, numeric, rtol=1e-4, atol=1e-9)

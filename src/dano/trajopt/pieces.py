@@ -3,7 +3,10 @@ the objective, the constraint violation, the augmented Lagrangian, its expansion
 trajectory, the Riccati backward pass and the closed-loop forward pass (`Pieces.call` compiles
 each once per problem; `dano.trajopt.ilqr` runs the loops)."""
 
+import atexit
 import dataclasses
+import threading
+import weakref
 from collections.abc import Callable
 
 import jax
@@ -185,15 +188,76 @@ def augmented(f: Pieces, xs, us, lam, nu, rho):
     return jnp.sum(run) + f.terminal(xs[-1], nu, rho)
 
 
-def expand(f: Pieces, xs, us, lam, nu, rho, jacobian_batch):
-    """Dynamics Jacobians and the augmented cost's gradients and Hessians along (xs, us)."""
-    problem, n, ts = f.problem, f.n, f.ts
-    jac = jax.jacfwd(problem.dynamics, argnums=(0, 1))
+def jacobians(f: Flow, xs, us, jacobian_batch):
+    """The dynamics Jacobians A (T, n, n) and B (T, n, m) along (xs, us): a piece of the dynamics
+    alone (`Flow.call`), so `compile_ahead` can compile it before the problem's costs exist."""
+    jac = jax.jacfwd(f.dynamics, argnums=(0, 1))
     if jacobian_batch is None:
-        A, B = jax.vmap(jac)(xs[:-1], us, ts)
-    else:
-        batch = None if jacobian_batch == 1 else jacobian_batch  # 1: a plain scan, branches kept
-        A, B = jax.lax.map(lambda a: jac(*a), (xs[:-1], us, ts), batch_size=batch)
+        return jax.vmap(jac)(xs[:-1], us, f.ts)
+    batch = None if jacobian_batch == 1 else jacobian_batch  # 1: a plain scan, branches kept
+    return jax.lax.map(lambda a: jac(*a), (xs[:-1], us, f.ts), batch_size=batch)
+
+
+_AHEAD: "weakref.WeakKeyDictionary[Callable, dict[tuple, threading.Event]]" = weakref.WeakKeyDictionary()
+_AHEAD_LOCK = threading.Lock()
+
+
+def _ahead_key(f: Flow, n: int, m: int, jacobian_batch: int | None) -> tuple:
+    return f.horizon, f.options, n, m, jacobian_batch
+
+
+def compile_ahead(f: Flow, n: int, m: int, jacobian_batch: int | None) -> None:
+    """Starts compiling `jacobians` for states of size n and controls of size m in a thread of its
+    own, so the largest program a solve needs compiles while the caller goes on (XLA lets go of
+    the GIL while it compiles): a push compiles it during its settling and warm start, which
+    compile and run the forward pass. Once per dynamics and shapes; `jacobians_along` waits for it.
+    An error there is left for the call that needs the program, which compiles it again and raises.
+    """
+    key = _ahead_key(f, n, m, jacobian_batch)
+    with _AHEAD_LOCK:
+        table = _AHEAD.setdefault(f.dynamics, {})
+        if key in table:
+            return
+        done = table[key] = threading.Event()
+    xs, us = jnp.zeros((f.horizon + 1, n)), jnp.zeros((f.horizon, m))
+
+    def work():
+        try:
+            jitted(jacobians, f.options).lower(f, xs, us, jacobian_batch).compile()  # pyright: ignore[reportFunctionMemberAccess]
+        except Exception:  # noqa: BLE001, S110 (the call that needs it raises it)
+            pass
+        finally:
+            done.set()
+
+    with _AHEAD_LOCK:
+        if not _PENDING:  # registered on first use, not at import
+            atexit.register(_finish_compiling)
+        _PENDING.append(done)
+    threading.Thread(target=work, name="dano-compile-ahead", daemon=True).start()
+
+
+_PENDING: list[threading.Event] = []
+
+
+def _finish_compiling() -> None:
+    """At exit, the compilations `compile_ahead` started are let finish: a thread stopped inside
+    XLA while Python shuts down would abort the process."""
+    for done in _PENDING:
+        done.wait()
+
+
+def jacobians_along(f: Flow, xs, us, jacobian_batch):
+    """`jacobians` (`Flow.call`), once a compilation of them that `compile_ahead` started is done."""
+    table = _AHEAD.get(f.dynamics)
+    done = None if table is None else table.get(_ahead_key(f, xs.shape[1], us.shape[1], jacobian_batch))
+    if done is not None:
+        done.wait()
+    return f.call(jacobians, xs, us, jacobian_batch)
+
+
+def expand(f: Pieces, xs, us, lam, nu, rho):
+    """The augmented cost's gradients and Hessians along (xs, us) (the dynamics': `jacobians`)."""
+    problem, n, ts = f.problem, f.n, f.ts
     c = f.constraints(xs, us)
     active = active_set(c, lam)
     z = jnp.concatenate([xs[:-1], us], axis=1)
@@ -215,7 +279,7 @@ def expand(f: Pieces, xs, us, lam, nu, rho, jacobian_batch):
     Ch = jax.jacfwd(f.h)(xs[-1])  # (q, n)
     gT = jax.grad(problem.terminal_cost)(xs[-1]) + Ch.T @ (nu + rho * h)
     HT = jax.hessian(problem.terminal_cost)(xs[-1]) + rho * Ch.T @ Ch
-    return A, B, g, H, gT, HT
+    return g, H, gT, HT
 
 
 def backward(f: Pieces, A, B, g, H, gT, HT, reg):

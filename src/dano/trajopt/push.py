@@ -25,7 +25,7 @@ from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Integrator, Scene
 from dano.sim.step import Trajectory, scaled_model, step
 from dano.trajopt.ilqr import Options, Solution, open_loop, solve
-from dano.trajopt.pieces import Flow, OptimalControlProblem, TrajoptError, open_loop_states
+from dano.trajopt.pieces import Flow, OptimalControlProblem, TrajoptError, compile_ahead, open_loop_states
 from dano.trajopt.pushers import AbstractPusher, dof, pusher
 from dano.trajopt.task import PushTask
 from dano.types import DANO
@@ -103,7 +103,7 @@ def push_problem(
     held = jnp.asarray(sim.data.ctrl[: sim.model.nu - robot.full_ctrl(robot.hold()).shape[-1]])
     full = functools.partial(_full_ctrl, robot, held)
     dynamics = _dynamics(sim, full)
-    sim = _settled(sim, dynamics, task.horizon, robot.hold())
+    sim = _settled(sim, dynamics, task.horizon, robot.hold(), default_options(robot).jacobian_batch)
     return _assemble(robot, task, sim, dynamics, goal, full, floor)
 
 
@@ -118,7 +118,9 @@ SETTLE_S = 0.5
 it rests (placed just above the table, it comes to rest in that time)."""
 
 
-def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array) -> Simulation:
+def _settled(
+    sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array, jacobian_batch: int | None
+) -> Simulation:
     """`sim` with its DANOs where they rest after `SETTLE_S` seconds, the robot held still.
 
     Rolled out `horizon` frames at a time by the solver's own forward pass (`open_loop_states` on
@@ -128,6 +130,8 @@ def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array)
     flow = Flow.of(dynamics, horizon, compiler_options(world))
     controls = jnp.broadcast_to(hold, (horizon, hold.shape[0]))
     x = jnp.concatenate([sim.data.qpos, sim.data.qvel])
+    # the solve's dynamics Jacobians (its largest program) compile while this and the warm start run
+    compile_ahead(flow, x.shape[0], hold.shape[0], jacobian_batch)
     for _ in range(int(np.ceil(SETTLE_S / (horizon * scene.timestep) - 1e-9))):
         x = open_loop_states(flow, x, controls)[-1]
     if not np.all(np.isfinite(np.asarray(x))):
