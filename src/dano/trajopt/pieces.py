@@ -230,13 +230,15 @@ def compile_ahead(f: Flow, n: int, m: int, jacobian_batch: int | None) -> None:
             done.set()
 
     with _AHEAD_LOCK:
-        if not _PENDING:  # registered on first use, not at import
+        if not _REGISTERED:  # on first use, not at import
             atexit.register(_finish_compiling)
-        _PENDING.append(done)
+            _REGISTERED.append(True)
+        _PENDING[:] = [e for e in _PENDING if not e.is_set()] + [done]
     threading.Thread(target=work, name="dano-compile-ahead", daemon=True).start()
 
 
-_PENDING: list[threading.Event] = []
+_PENDING: list[threading.Event] = []  # the compilations `compile_ahead` started that may still run
+_REGISTERED: list[bool] = []
 
 
 def _finish_compiling() -> None:
