@@ -297,7 +297,8 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
             reg = reg * 10.0
             if reg > o.reg_max:
                 return _InnerState(_Iterate(xs, us, o.reg_max, iterations), J, expansion, None, Result.stalled)
-        step_small = float(jnp.max(jnp.abs(k))) <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
+        size = float(jnp.max(jnp.abs(k)))  # the feedforward step's largest entry
+        step_small = size <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
         top = LINE_SEARCH_REACH * state.alpha if state.alpha else max(o.line_search)
         for alpha in [a for a in o.line_search if a <= top] or o.line_search[-1:]:
             x_new, u_new = fn.flow.call(forward, xs, us, k, K, alpha)
@@ -311,7 +312,7 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
                 return _InnerState(it, J_new, None, alpha, Result.successful if done else None)
         if step_small:
             return _InnerState(_Iterate(xs, us, reg * 10.0, iterations), J, expansion, 0.0, Result.successful)
-        reg = _shorter(fn, expansion, reg, float(jnp.max(jnp.abs(k))), o.reg_max)
+        reg = _shorter(fn, expansion, reg, size, o.reg_max)
         if reg > o.reg_max:
             return _InnerState(_Iterate(xs, us, o.reg_max, iterations), J, expansion, 0.0, Result.stalled)
         return _InnerState(_Iterate(xs, us, reg, iterations), J, expansion, 0.0)
