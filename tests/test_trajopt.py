@@ -38,6 +38,26 @@ def lq():
     return problem, (A, B, Q, R, QT), jnp.asarray(rng.normal(size=N))
 
 
+@pytest.fixture(scope="module")
+def pendulum():
+    """A pendulum (θ = 0 hanging) swung up towards θ = π in 3 s, its torque bounded below the
+    weight's (4 vs 9.81 N m per unit inertia, so it must swing), the goal a terminal cost."""
+    h, g, limit, goal = 0.05, 9.81, 4.0, jnp.asarray([jnp.pi, 0.0])
+
+    def dynamics(x, u, t):
+        w = x[1] + h * (u[0] - g * jnp.sin(x[0]))
+        return jnp.stack([x[0] + h * w, w])
+
+    problem = OptimalControlProblem(
+        dynamics=dynamics,
+        cost=lambda x, u, t: 1e-2 * u @ u,
+        terminal_cost=lambda x: 100.0 * (x - goal) @ (x - goal),
+        horizon=60,
+        constraints=lambda x, u, t: jnp.concatenate([u - limit, -u - limit]),
+    )
+    return problem, jnp.zeros(2)
+
+
 def riccati_controls(A, B, Q, R, QT, x0):
     """The finite-horizon discrete LQR by the textbook recursion (numpy, independent of the solver)."""
     P, gains = QT, []
@@ -62,7 +82,8 @@ def test_ilqr_solves_linear_quadratic_problem_to_the_riccati_solution(lq):
 
 def test_jacobians_compiled_ahead_are_the_dynamics_matrices(lq):
     """`compile_ahead` compiles the dynamics Jacobians in a thread once per dynamics and shapes;
-    `jacobians_along` then gives A and B of the linear dynamics. A compilation that fails there
+    `jacobians_along` then gives A and B of the linear dynamics, on one lane or in chunks of frames
+    on several (3 lanes: 7 + 7 + 6 frames, the last chunk padded). A compilation that fails there
     (a state of the wrong size) raises nowhere: the call that needs a program compiles its own."""
     from dano.trajopt import pieces as P
 
@@ -70,13 +91,35 @@ def test_jacobians_compiled_ahead_are_the_dynamics_matrices(lq):
     flow = problem.flow
     for n in (N, N, N + 1):
         P.compile_ahead(flow, n, M, None)
-    # one compilation per state size (the solves of other tests may have asked for other batches)
-    assert sorted(k[2] for k in P._AHEAD[problem.dynamics] if k[3:] == (M, None)) == [N, N + 1]
+    # one compilation per state size (the solves of other tests may have asked for other chunks)
+    assert sorted(k[2] for k in P._AHEAD[problem.dynamics] if k[0] == T and k[3:] == (M, None)) == [N, N + 1]
     us = jnp.asarray(np.random.default_rng(2).normal(size=(T, M)))
-    JA, JB = P.jacobians_along(flow, rollout(problem, x0, us), us, None)
-    np.testing.assert_allclose(JA, np.broadcast_to(A, (T, N, N)), rtol=0, atol=1e-14)
-    np.testing.assert_allclose(JB, np.broadcast_to(B, (T, N, M)), rtol=0, atol=1e-14)
+    for lanes in (1, 3, T + 5):
+        JA, JB = P.jacobians_along(flow, rollout(problem, x0, us), us, None, lanes)
+        np.testing.assert_allclose(JA, np.broadcast_to(A, (T, N, N)), rtol=0, atol=1e-14)
+        np.testing.assert_allclose(JB, np.broadcast_to(B, (T, N, M)), rtol=0, atol=1e-14)
     P._finish_compiling()  # the failing one has finished too
+
+
+def test_the_same_solve_on_one_lane_and_on_several(pendulum):
+    """The line search's step sizes tried several at a time and the Jacobians taken in chunks on
+    parallel lanes give the solve one lane gives, iteration for iteration: a pendulum swung up
+    under a torque bound, whose line searches back off (steps below 1 are taken)."""
+    problem, x0 = pendulum
+    one, three = (solve(problem, x0, jnp.full((problem.horizon, 1), 0.5), Options(lanes=k)) for k in (1, 3))
+    assert one.converged, one.message
+    assert one.states[-1, 0] > 2.9 and np.max(np.abs(one.controls)) <= 4.0 + 1e-4  # swung up, within the bound
+    assert min(h[2] for h in one.history) < 1.0  # some searches tried more than one step size
+    assert one.history == three.history
+    np.testing.assert_array_equal(one.controls, three.controls)
+
+
+def test_lanes_below_one_are_refused():
+    from dano.trajopt.pieces import lanes
+
+    assert lanes(None) >= 1 and lanes(3) == 3
+    with pytest.raises(TrajoptError, match="lanes must be >= 1"):
+        lanes(0)
 
 
 def test_a_failed_search_raises_the_regularisation_until_the_step_shortens(lq):
@@ -93,7 +136,7 @@ def test_a_failed_search_raises_the_regularisation_until_the_step_shortens(lq):
     us = jnp.zeros((T, M))
     xs = rollout(problem, x0, us)
     expansion = (
-        *fn.flow.call(jacobians, xs, us, None),
+        *fn.flow.call(jacobians, xs[:-1], us, jnp.arange(T), None),
         *fn.call(expand, xs, us, jnp.zeros((T, 0)), jnp.zeros(0), 10.0),
     )
 

@@ -40,8 +40,9 @@ from dano.trajopt.pieces import (
     backward,
     compile_ahead,
     expand,
-    forward,
+    forward_trials,
     jacobians_along,
+    lanes,
     objective,
     open_loop_states,
     pieces,
@@ -75,6 +76,10 @@ class Options:
             batch size); None: all at once (`jax.vmap`). Vmapping a long simulated step over time
             turns its branches into selects and its loops into the longest one; for a robot arm in
             contact, one step at a time (1) is the fast choice.
+        lanes: programs run at once from threads of their own (`dano.trajopt.pieces.lanes`): the
+            line search's rollouts `lanes` step sizes at a time, the Jacobians in `lanes` chunks
+            of frames. None: one per CPU core on the CPU backend, 1 on an accelerator. The
+            result is the same for any count (the step sizes are accepted in the same order).
     """
 
     max_iterations: int = 300
@@ -91,6 +96,7 @@ class Options:
     line_search: tuple[float, ...] = (1.0, 0.5, 0.25, 0.125, 0.0625, 0.03125, 0.015625, 0.0078125)
     armijo: float = 1e-4
     jacobian_batch: int | None = None
+    lanes: int | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -184,7 +190,7 @@ def solve(
         raise TrajoptError("the initial state is not finite")
     n, m = x0.shape[0], us.shape[1]
     fn = pieces(problem, n, m)
-    compile_ahead(fn.flow, n, m, options.jacobian_batch)  # while the first rollout runs
+    compile_ahead(fn.flow, n, m, options.jacobian_batch, lanes(options.lanes))  # while the first rollout runs
     xs = open_loop(problem, x0, us)
     if not bool(jnp.all(jnp.isfinite(xs))):
         raise TrajoptError("the initial controls' rollout is not finite")
@@ -286,7 +292,7 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
         fn, o, (xs, us, reg, iterations), J = self.fn, self.o, state.it, state.J
         iterations += 1
         expansion = state.expansion or (
-            *jacobians_along(fn.flow, xs, us, o.jacobian_batch),
+            *jacobians_along(fn.flow, xs, us, o.jacobian_batch, lanes(o.lanes)),
             *fn.call(expand, xs, us, *self.mult),
         )
         A, B, g, H, gT, HT = expansion
@@ -300,8 +306,8 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
         size = float(jnp.max(jnp.abs(k)))  # the feedforward step's largest entry
         step_small = size <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
         top = LINE_SEARCH_REACH * state.alpha if state.alpha else max(o.line_search)
-        for alpha in [a for a in o.line_search if a <= top] or o.line_search[-1:]:
-            x_new, u_new = fn.flow.call(forward, xs, us, k, K, alpha)
+        trials = [a for a in o.line_search if a <= top] or o.line_search[-1:]
+        for alpha, (x_new, u_new) in forward_trials(fn.flow, xs, us, k, K, trials, lanes(o.lanes)):
             if not bool(jnp.all(jnp.isfinite(x_new))):
                 continue
             J_new = float(fn.call(augmented, x_new, u_new, *self.mult))

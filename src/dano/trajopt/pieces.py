@@ -4,13 +4,17 @@ trajectory, the Riccati backward pass and the closed-loop forward pass (`Pieces.
 each once per problem; `dano.trajopt.ilqr` runs the loops)."""
 
 import atexit
+import concurrent.futures
 import dataclasses
+import os
 import threading
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from typing import TypeVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from dano.errors import DanoError
@@ -188,42 +192,100 @@ def augmented(f: Pieces, xs, us, lam, nu, rho):
     return jnp.sum(run) + f.terminal(xs[-1], nu, rho)
 
 
-def jacobians(f: Flow, xs, us, jacobian_batch):
-    """The dynamics Jacobians A (T, n, n) and B (T, n, m) along (xs, us): a piece of the dynamics
-    alone (`Flow.call`), so `compile_ahead` can compile it before the problem's costs exist."""
+def jacobians(f: Flow, xs, us, ts, jacobian_batch):
+    """The dynamics Jacobians A (k, n, n) and B (k, n, m) of the frames ts (k,) from the states xs
+    (k, n) under the controls us (k, m): a piece of the dynamics alone (`Flow.call`), so
+    `compile_ahead` can compile it before the problem's costs exist; `jacobians_along` takes the
+    horizon's frames in chunks of k."""
     jac = jax.jacfwd(f.dynamics, argnums=(0, 1))
     if jacobian_batch is None:
-        return jax.vmap(jac)(xs[:-1], us, f.ts)
+        return jax.vmap(jac)(xs, us, ts)
     batch = None if jacobian_batch == 1 else jacobian_batch  # 1: a plain scan, branches kept
-    return jax.lax.map(lambda a: jac(*a), (xs[:-1], us, f.ts), batch_size=batch)
+    return jax.lax.map(lambda a: jac(*a), (xs, us, ts), batch_size=batch)
+
+
+def lanes(requested: int | None = None) -> int:
+    """How many of a solve's independent programs run at once, each from a thread of its own (the
+    line search's rollouts, the Jacobians' chunks of frames): `requested`, or on the CPU backend
+    one per core this process may use, elsewhere 1 (an accelerator runs a program at a time). An
+    XLA CPU execution of these small sequential programs keeps to one core: a rollout timed alone
+    and two from two threads take the same wall time (`python bench/trajopt.py`, README)."""
+    if requested is not None:
+        if requested < 1:
+            raise TrajoptError(f"lanes must be >= 1, got {requested}")
+        return requested
+    if jax.default_backend() != "cpu":
+        return 1
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _chunks(horizon: int, lanes: int) -> tuple[int, int]:
+    """(frames per chunk, chunks) to cover `horizon` frames in at most `lanes` equal chunks."""
+    size = -(-horizon // max(1, min(lanes, horizon)))
+    return size, -(-horizon // size)
+
+
+_T = TypeVar("_T")
+_POOL: list[concurrent.futures.ThreadPoolExecutor] = []
+_POOL_LOCK = threading.Lock()
+
+
+def in_parallel(calls: Sequence[Callable[[], _T]]) -> list[_T]:
+    """Each call's result, once all are ready (`jax.block_until_ready`): the first made in this
+    thread, the others in threads of a pool made on first use (XLA lets go of the GIL while it
+    runs a program, so programs from different threads run on different cores)."""
+    if len(calls) == 1:
+        return [jax.block_until_ready(calls[0]())]
+    with _POOL_LOCK:
+        if not _POOL:
+            _POOL.append(concurrent.futures.ThreadPoolExecutor(thread_name_prefix="dano-lane"))
+    futures = [_POOL[0].submit(lambda c=c: jax.block_until_ready(c())) for c in calls[1:]]
+    first = jax.block_until_ready(calls[0]())
+    return [first, *(future.result() for future in futures)]
+
+
+def in_lanes(calls: Sequence[Callable[[], _T]], lanes: int) -> list[_T]:
+    """Each call's result, `lanes` calls at a time (`in_parallel`)."""
+    return [r for i in range(0, len(calls), lanes) for r in in_parallel(calls[i : i + lanes])]
+
+
+def forward_trials(f: Flow, xs, us, k, K, alphas: Sequence[float], lanes: int) -> Iterator[tuple[float, tuple]]:
+    """(α, `forward` rollout at α) for each step size in order, `lanes` rollouts at a time: a line
+    search that stops at the first it accepts wastes at most `lanes` - 1 rollouts, each on a core
+    that would have waited."""
+    for i in range(0, len(alphas), lanes):
+        group = alphas[i : i + lanes]
+        yield from zip(group, in_parallel([lambda a=a: f.call(forward, xs, us, k, K, a) for a in group]), strict=True)
 
 
 _AHEAD: "weakref.WeakKeyDictionary[Callable, dict[tuple, threading.Event]]" = weakref.WeakKeyDictionary()
 _AHEAD_LOCK = threading.Lock()
 
 
-def _ahead_key(f: Flow, n: int, m: int, jacobian_batch: int | None) -> tuple:
-    return f.horizon, f.options, n, m, jacobian_batch
+def _ahead_key(f: Flow, n: int, m: int, jacobian_batch: int | None, lanes: int) -> tuple:
+    return _chunks(f.horizon, lanes)[0], f.options, n, m, jacobian_batch
 
 
-def compile_ahead(f: Flow, n: int, m: int, jacobian_batch: int | None) -> None:
-    """Starts compiling `jacobians` for states of size n and controls of size m in a thread of its
-    own, so the largest program a solve needs compiles while the caller goes on (XLA lets go of
-    the GIL while it compiles): a push compiles it during its settling and warm start, which
-    compile and run the forward pass. Once per dynamics and shapes; `jacobians_along` waits for it.
-    An error there is left for the call that needs the program, which compiles it again and raises.
+def compile_ahead(f: Flow, n: int, m: int, jacobian_batch: int | None, lanes: int = 1) -> None:
+    """Starts compiling `jacobians` for states of size n and controls of size m, over the chunks of
+    frames `jacobians_along` takes on `lanes` lanes, in a thread of its own, so the largest program
+    a solve needs compiles while the caller goes on (XLA lets go of the GIL while it compiles): a
+    push compiles it during its settling and warm start, which compile and run the forward pass.
+    Once per dynamics and shapes; `jacobians_along` waits for it. An error there is left for the
+    call that needs the program, which compiles it again and raises.
     """
-    key = _ahead_key(f, n, m, jacobian_batch)
+    key = _ahead_key(f, n, m, jacobian_batch, lanes)
     with _AHEAD_LOCK:
         table = _AHEAD.setdefault(f.dynamics, {})
         if key in table:
             return
         done = table[key] = threading.Event()
-    xs, us = jnp.zeros((f.horizon + 1, n)), jnp.zeros((f.horizon, m))
+    size = key[0]
+    xs, us, ts = jnp.zeros((size, n)), jnp.zeros((size, m)), jnp.zeros(size, int)
 
     def work():
         try:
-            jitted(jacobians, f.options).lower(f, xs, us, jacobian_batch).compile()  # pyright: ignore[reportFunctionMemberAccess]
+            jitted(jacobians, f.options).lower(f, xs, us, ts, jacobian_batch).compile()  # pyright: ignore[reportFunctionMemberAccess]
         except Exception:  # noqa: BLE001, S110 (the call that needs it raises it)
             pass
         finally:
@@ -248,13 +310,21 @@ def _finish_compiling() -> None:
         done.wait()
 
 
-def jacobians_along(f: Flow, xs, us, jacobian_batch):
-    """`jacobians` (`Flow.call`), once a compilation of them that `compile_ahead` started is done."""
-    table = _AHEAD.get(f.dynamics)
-    done = None if table is None else table.get(_ahead_key(f, xs.shape[1], us.shape[1], jacobian_batch))
-    if done is not None:
-        done.wait()
-    return f.call(jacobians, xs, us, jacobian_batch)
+def jacobians_along(f: Flow, xs, us, jacobian_batch, lanes: int = 1):
+    """A (T, n, n) and B (T, n, m) along the states xs (T+1, n) and controls us (T, m): `jacobians`
+    over the horizon in chunks of equal length, one per lane (`in_parallel`; the last chunk
+    padded with its last frame), once compiled (`compile_ahead`, started here if not before)."""
+    T, n, m = f.horizon, xs.shape[1], us.shape[1]
+    compile_ahead(f, n, m, jacobian_batch, lanes)
+    _AHEAD[f.dynamics][_ahead_key(f, n, m, jacobian_batch, lanes)].wait()
+    size, count = _chunks(T, lanes)
+    frames = np.minimum(np.arange(size * count), T - 1).reshape(count, size)
+    ts = jnp.arange(T)
+    parts = in_parallel([lambda i=i: f.call(jacobians, xs[i], us[i], ts[i], jacobian_batch) for i in frames])
+    if count == 1:
+        return parts[0]
+    A, B = (jnp.concatenate(p, axis=0)[:T] for p in zip(*parts, strict=True))
+    return A, B
 
 
 def expand(f: Pieces, xs, us, lam, nu, rho):

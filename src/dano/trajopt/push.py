@@ -25,7 +25,15 @@ from dano.sim.run import Simulation, at_interval, compiler_options
 from dano.sim.scene import Integrator, Scene
 from dano.sim.step import Trajectory, scaled_model, step
 from dano.trajopt.ilqr import Options, Solution, open_loop, solve
-from dano.trajopt.pieces import Flow, OptimalControlProblem, TrajoptError, compile_ahead, open_loop_states
+from dano.trajopt.pieces import (
+    Flow,
+    OptimalControlProblem,
+    TrajoptError,
+    compile_ahead,
+    in_lanes,
+    lanes,
+    open_loop_states,
+)
 from dano.trajopt.pushers import AbstractPusher, dof, pusher
 from dano.trajopt.task import PushTask
 from dano.types import DANO
@@ -103,7 +111,7 @@ def push_problem(
     held = jnp.asarray(sim.data.ctrl[: sim.model.nu - robot.full_ctrl(robot.hold()).shape[-1]])
     full = functools.partial(_full_ctrl, robot, held)
     dynamics = _dynamics(sim, full)
-    sim = _settled(sim, dynamics, task.horizon, robot.hold(), default_options(robot).jacobian_batch)
+    sim = _settled(sim, dynamics, task.horizon, robot.hold(), default_options(robot))
     return _assemble(robot, task, sim, dynamics, goal, full, floor)
 
 
@@ -118,9 +126,7 @@ SETTLE_S = 0.5
 it rests (placed just above the table, it comes to rest in that time)."""
 
 
-def _settled(
-    sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array, jacobian_batch: int | None
-) -> Simulation:
+def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array, options: Options) -> Simulation:
     """`sim` with its DANOs where they rest after `SETTLE_S` seconds, the robot held still.
 
     Rolled out `horizon` frames at a time by the solver's own forward pass (`open_loop_states` on
@@ -131,7 +137,7 @@ def _settled(
     controls = jnp.broadcast_to(hold, (horizon, hold.shape[0]))
     x = jnp.concatenate([sim.data.qpos, sim.data.qvel])
     # the solve's dynamics Jacobians (its largest program) compile while this and the warm start run
-    compile_ahead(flow, x.shape[0], hold.shape[0], jacobian_batch)
+    compile_ahead(flow, x.shape[0], hold.shape[0], options.jacobian_batch, lanes(options.lanes))
     for _ in range(int(np.ceil(SETTLE_S / (horizon * scene.timestep) - 1e-9))):
         x = open_loop_states(flow, x, controls)[-1]
     if not np.all(np.isfinite(np.asarray(x))):
@@ -216,18 +222,23 @@ def _assemble(
     terminal = (lambda x: x[a : a + 2] - goal_j) if goal_is_constraint else None
     options = compiler_options(world)
     problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal, options)
-    first = _warm_start(problem, x0, [pm.guess(s) for s in pm.scales], lambda x: x[a : a + 2] - goal_j)
+    guesses = [pm.guess(s) for s in pm.scales]
+    first = _warm_start(problem, x0, guesses, lambda x: x[a : a + 2] - goal_j, lanes(default_options(robot).lanes))
     return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, pm.effector, full)
 
 
-def _warm_start(problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss) -> np.ndarray:
-    """The guess whose open-loop rollout ends nearest the goal (rolled out one after another).
+def _warm_start(
+    problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss, lanes: int
+) -> np.ndarray:
+    """The guess whose open-loop rollout ends nearest the goal (rolled out `lanes` at a time, each
+    from a thread of its own: `dano.trajopt.pieces.in_lanes`).
 
     iLQR needs a start in contact: from zero controls the pusher never touches the object and the
     goal has no gradient in the controls."""
     start = jnp.asarray(x0)
-    # one after another: on a CPU a vmapped rollout runs no faster and compiles its own program
-    misses = np.array([float(jnp.linalg.norm(miss(open_loop(problem, start, jnp.asarray(u))[-1]))) for u in guesses])
+    # not vmapped: on a CPU a vmapped rollout runs no faster and compiles its own program
+    ends = in_lanes([lambda u=u: open_loop(problem, start, jnp.asarray(u))[-1] for u in guesses], lanes)
+    misses = np.array([float(jnp.linalg.norm(miss(end))) for end in ends])
     misses = np.where(np.isfinite(misses), misses, np.inf)
     return guesses[int(np.argmin(misses))]
 
