@@ -4,7 +4,9 @@
   simulated seconds: the implicit step (one 2 ms step per frame, the default) over each pair's
   active set (the default) and over all points (`contact_budget` = all), beside MuJoCo C with the
   bunny as a CoACD convex decomposition (the mesh path) at its default 2 ms step and at 0.5 ms;
-- batched: vmapped over 1, 64 and 256 environments (and sharded over every local device);
+- batched: vmapped over 1, 64 and 256 environments (and sharded over every local device), and
+  64 and 256 environments one after another, the batch split over the cores
+  (`Simulation.run_batch(vmap=False)`, `dano.lanes`); "x single" divides by the single env at rest;
 - JIT compile of a 500-frame rollout, lowering and compiling apart;
 - a DANO-DANO step with the partner's density from its neural network vs from the baked grid.
 
@@ -20,12 +22,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from dano import build_dano
+from dano import build_dano, lanes
 from dano.assets import bunny_mesh
 from dano.baselines.mesh import convex_decomposition, mujoco_mesh_model
 from dano.fields import NeuralField, mesh_field
 from dano.sim import DanoBody, Scene
-from dano.sim.run import Simulation, shard_batch
+from dano.sim.run import Simulation, rollout_lanes, shard_batch
 from dano.sim.step import rollout
 
 
@@ -55,6 +57,19 @@ def timed_rollout(sim: Simulation, frames: int, batch: int | None = None, repeat
     run = _median_seconds(compiled, d, repeats=repeats)
     steps = frames * sim.world.substeps * (batch or 1)
     return steps / run, compile_s
+
+
+def timed_lanes(sim: Simulation, frames: int, batch: int, repeats: int = 3):
+    """(steps per second, first call less a run) of `frames` frames of `batch` environments, one
+    after another, the batch split over the cores (`rollout_lanes`)."""
+    d = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch, *x.shape)), sim.data)
+    d = d.replace(qvel=d.qvel.at[:, 0].set(jnp.linspace(0.0, 0.5, batch)))
+    fn = lambda d: rollout_lanes(sim.world, sim.params, sim.mjx_model, d, frames).qpos  # noqa: E731
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(d))
+    first = time.perf_counter() - t0
+    run = _median_seconds(fn, d, repeats=repeats)
+    return frames * sim.world.substeps * batch / run, max(first - run, 0.0)
 
 
 def mujoco_rate(model, vx: float = 0.0, steps: int = 4000) -> float:
@@ -115,6 +130,7 @@ def main() -> None:
     print(f"{jax.device_count()} {jax.default_backend()} device(s); bunny DANO {bunny.n_points} points")
 
     print(f"\n{'single env, equal simulated seconds':52}{'sim s / s':>12}{'ms / 2 ms':>12}{'JIT [s]':>9}{'ratio':>8}")
+    unbatched = {}
     for label, vx in (("at rest", 0.0), ("sliding 1 m/s", 1.0)):
         c_rate = mujoco_rate(mj[0.002], vx) * 0.002
         rows = []
@@ -126,20 +142,28 @@ def main() -> None:
             rows.append((f"DANO implicit 2 ms, {name}, {label}", seconds, compile_s))
         rows.append((f"MuJoCo C CoACD ({len(pieces)} hulls) 2 ms, {label}", c_rate, 0.0))
         rows.append((f"MuJoCo C CoACD 0.5 ms, {label}", mujoco_rate(mj[0.0005], vx) * 0.0005, 0.0))
+        unbatched[label] = rows[0][1]  # over its active set
         for name, rate, compile_s in rows:
             print(f"{name:52}{rate:>12.2f}{2e3 / rate * 1e-3:>12.3f}{compile_s:>9.1f}{rate / c_rate:>8.3f}")
 
-    head = f"{'batched (vmap, sharded over the devices)':52}{'sim s / s':>12}{'per env':>12}"
-    print(f"\n{head}{'JIT [s]':>9}{'x 1 env':>8}")
+    at_rest = unbatched["at rest"]
+    head = f"{'batched':52}{'sim s / s':>12}{'per env':>12}"
+    print(f"\n{head}{'JIT [s]':>9}{'x 1 env':>8}{'x single':>9}")
     body = DanoBody("bunny", bunny, pos=(0, 0, lift))
     sim = Simulation.from_scene(Scene(bodies=(body,)))
     single = None
-    for batch, frames in ((1, 100), (64, 20), (256, 10)):
-        rate, compile_s = timed_rollout(sim, frames, batch, repeats=3)
+    cases = [("vmap", 1, 100), ("vmap", 64, 20), ("vmap", 256, 10), ("lanes", 64, 20), ("lanes", 256, 10)]
+    for how, batch, frames in cases:
+        if how == "vmap":
+            rate, compile_s = timed_rollout(sim, frames, batch, repeats=3)
+            name = f"DANO bunny at rest, {batch} envs, vmapped ({jax.device_count()} devices)"
+        else:
+            rate, compile_s = timed_lanes(sim, frames, batch)
+            name = f"DANO bunny at rest, {batch} envs, on {lanes.count()} lanes"
         rate = rate * sim.scene.timestep / sim.world.substeps
         single = single or rate
-        name = f"DANO bunny at rest, {batch} envs"
-        print(f"{name:52}{rate:>12.2f}{rate / batch:>12.3f}{compile_s:>9.1f}{rate / single:>8.2f}")
+        ratios = f"{rate / single:>8.2f}{rate / at_rest:>9.2f}"
+        print(f"{name:52}{rate:>12.2f}{rate / batch:>12.3f}{compile_s:>9.1f}{ratios}")
 
     # DANO-DANO: two bunnies touching; the partner's density from a network vs its baked grid.
     print(f"\n{'two DANO bunnies touching':52}{'sim s / s':>12}{'JIT [s]':>9}")

@@ -9,7 +9,7 @@ ROOT = Path(__file__).resolve().parent.parent / "src" / "dano"
 README = ROOT.parent.parent / "README.md"
 
 LAYERS = (
-    ("foundations", ("errors", "math", "validate", "results", "extras", "_mjx", "_lazy")),
+    ("foundations", ("errors", "math", "validate", "results", "extras", "lanes", "_mjx", "_lazy")),
     ("data and files", ("types", "io")),
     ("the object (eqs. 1-16)", ("fields", "sampling", "mass", "surface", "reference", "build", "contact")),
     ("simulation", ("sim",)),

@@ -114,14 +114,6 @@ def test_the_same_solve_on_one_lane_and_on_several(pendulum):
     np.testing.assert_array_equal(one.controls, three.controls)
 
 
-def test_lanes_below_one_are_refused():
-    from dano.trajopt.pieces import lanes
-
-    assert lanes(None) >= 1 and lanes(3) == 3
-    with pytest.raises(TrajoptError, match="lanes must be >= 1"):
-        lanes(0)
-
-
 def test_a_failed_search_raises_the_regularisation_until_the_step_shortens(lq):
     """After a failed line search the next Levenberg term is the first tenfold level whose
     feedforward step is at most 0.9 of the failed one's: the level below it leaves the step within

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from dano import lanes
 from dano.results import AbstractIterativeSolver, AbstractSolution, Result, finish, iterate
 from dano.trajopt.pieces import (
     OptimalControlProblem,
@@ -42,7 +43,6 @@ from dano.trajopt.pieces import (
     expand,
     forward_trials,
     jacobians_along,
-    lanes,
     objective,
     open_loop_states,
     pieces,
@@ -76,7 +76,7 @@ class Options:
             batch size); None: all at once (`jax.vmap`). Vmapping a long simulated step over time
             turns its branches into selects and its loops into the longest one; for a robot arm in
             contact, one step at a time (1) is the fast choice.
-        lanes: programs run at once from threads of their own (`dano.trajopt.pieces.lanes`): the
+        lanes: programs run at once from threads of their own (`dano.lanes.count`): the
             line search's rollouts `lanes` step sizes at a time, the Jacobians in `lanes` chunks
             of frames. None: one per CPU core on the CPU backend, 1 on an accelerator. The
             result is the same for any count (the step sizes are accepted in the same order).
@@ -190,7 +190,7 @@ def solve(
         raise TrajoptError("the initial state is not finite")
     n, m = x0.shape[0], us.shape[1]
     fn = pieces(problem, n, m)
-    compile_ahead(fn.flow, n, m, options.jacobian_batch, lanes(options.lanes))  # while the first rollout runs
+    compile_ahead(fn.flow, n, m, options.jacobian_batch, lanes.count(options.lanes))  # while the first rollout runs
     xs = open_loop(problem, x0, us)
     if not bool(jnp.all(jnp.isfinite(xs))):
         raise TrajoptError("the initial controls' rollout is not finite")
@@ -292,7 +292,7 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
         fn, o, (xs, us, reg, iterations), J = self.fn, self.o, state.it, state.J
         iterations += 1
         expansion = state.expansion or (
-            *jacobians_along(fn.flow, xs, us, o.jacobian_batch, lanes(o.lanes)),
+            *jacobians_along(fn.flow, xs, us, o.jacobian_batch, lanes.count(o.lanes)),
             *fn.call(expand, xs, us, *self.mult),
         )
         A, B, g, H, gT, HT = expansion
@@ -307,7 +307,7 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
         step_small = size <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
         top = LINE_SEARCH_REACH * state.alpha if state.alpha else max(o.line_search)
         trials = [a for a in o.line_search if a <= top] or o.line_search[-1:]
-        for alpha, (x_new, u_new) in forward_trials(fn.flow, xs, us, k, K, trials, lanes(o.lanes)):
+        for alpha, (x_new, u_new) in forward_trials(fn.flow, xs, us, k, K, trials, lanes.count(o.lanes)):
             if not bool(jnp.all(jnp.isfinite(x_new))):
                 continue
             J_new = float(fn.call(augmented, x_new, u_new, *self.mult))

@@ -4,13 +4,10 @@ trajectory, the Riccati backward pass and the closed-loop forward pass (`Pieces.
 each once per problem; `dano.trajopt.ilqr` runs the loops)."""
 
 import atexit
-import concurrent.futures
 import dataclasses
-import os
 import threading
 import weakref
 from collections.abc import Callable, Iterator, Sequence
-from typing import TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -18,6 +15,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano.errors import DanoError
+from dano.lanes import in_parallel
 from dano.sim.run import jitted
 
 
@@ -204,49 +202,10 @@ def jacobians(f: Flow, xs, us, ts, jacobian_batch):
     return jax.lax.map(lambda a: jac(*a), (xs, us, ts), batch_size=batch)
 
 
-def lanes(requested: int | None = None) -> int:
-    """How many of a solve's independent programs run at once, each from a thread of its own (the
-    line search's rollouts, the Jacobians' chunks of frames): `requested`, or on the CPU backend
-    one per core this process may use, elsewhere 1 (an accelerator runs a program at a time). An
-    XLA CPU execution of these small sequential programs keeps to one core: a rollout timed alone
-    and two from two threads take the same wall time (`python bench/trajopt.py`, README)."""
-    if requested is not None:
-        if requested < 1:
-            raise TrajoptError(f"lanes must be >= 1, got {requested}")
-        return requested
-    if jax.default_backend() != "cpu":
-        return 1
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def _chunks(horizon: int, lanes: int) -> tuple[int, int]:
     """(frames per chunk, chunks) to cover `horizon` frames in at most `lanes` equal chunks."""
     size = -(-horizon // max(1, min(lanes, horizon)))
     return size, -(-horizon // size)
-
-
-_T = TypeVar("_T")
-_POOL: list[concurrent.futures.ThreadPoolExecutor] = []
-_POOL_LOCK = threading.Lock()
-
-
-def in_parallel(calls: Sequence[Callable[[], _T]]) -> list[_T]:
-    """Each call's result, once all are ready (`jax.block_until_ready`): the first made in this
-    thread, the others in threads of a pool made on first use (XLA lets go of the GIL while it
-    runs a program, so programs from different threads run on different cores)."""
-    if len(calls) == 1:
-        return [jax.block_until_ready(calls[0]())]
-    with _POOL_LOCK:
-        if not _POOL:
-            _POOL.append(concurrent.futures.ThreadPoolExecutor(thread_name_prefix="dano-lane"))
-    futures = [_POOL[0].submit(lambda c=c: jax.block_until_ready(c())) for c in calls[1:]]
-    first = jax.block_until_ready(calls[0]())
-    return [first, *(future.result() for future in futures)]
-
-
-def in_lanes(calls: Sequence[Callable[[], _T]], lanes: int) -> list[_T]:
-    """Each call's result, `lanes` calls at a time (`in_parallel`)."""
-    return [r for i in range(0, len(calls), lanes) for r in in_parallel(calls[i : i + lanes])]
 
 
 def forward_trials(f: Flow, xs, us, k, K, alphas: Sequence[float], lanes: int) -> Iterator[tuple[float, tuple]]:

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dano import lanes
 from dano import validate as V
 from dano.scenarios import WorldError, in_world, push_scene
 from dano.sim.run import Simulation, at_interval, compiler_options
@@ -30,8 +31,6 @@ from dano.trajopt.pieces import (
     OptimalControlProblem,
     TrajoptError,
     compile_ahead,
-    in_lanes,
-    lanes,
     open_loop_states,
 )
 from dano.trajopt.pushers import AbstractPusher, dof, pusher
@@ -137,7 +136,7 @@ def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array,
     controls = jnp.broadcast_to(hold, (horizon, hold.shape[0]))
     x = jnp.concatenate([sim.data.qpos, sim.data.qvel])
     # the solve's dynamics Jacobians (its largest program) compile while this and the warm start run
-    compile_ahead(flow, x.shape[0], hold.shape[0], options.jacobian_batch, lanes(options.lanes))
+    compile_ahead(flow, x.shape[0], hold.shape[0], options.jacobian_batch, lanes.count(options.lanes))
     for _ in range(int(np.ceil(SETTLE_S / (horizon * scene.timestep) - 1e-9))):
         x = open_loop_states(flow, x, controls)[-1]
     if not np.all(np.isfinite(np.asarray(x))):
@@ -223,21 +222,23 @@ def _assemble(
     options = compiler_options(world)
     problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal, options)
     guesses = [pm.guess(s) for s in pm.scales]
-    first = _warm_start(problem, x0, guesses, lambda x: x[a : a + 2] - goal_j, lanes(default_options(robot).lanes))
+    first = _warm_start(
+        problem, x0, guesses, lambda x: x[a : a + 2] - goal_j, lanes.count(default_options(robot).lanes)
+    )
     return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, pm.effector, full)
 
 
 def _warm_start(
-    problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss, lanes: int
+    problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss, n_lanes: int
 ) -> np.ndarray:
-    """The guess whose open-loop rollout ends nearest the goal (rolled out `lanes` at a time, each
-    from a thread of its own: `dano.trajopt.pieces.in_lanes`).
+    """The guess whose open-loop rollout ends nearest the goal (rolled out `n_lanes` at a time, each
+    from a thread of its own: `dano.lanes.in_lanes`).
 
     iLQR needs a start in contact: from zero controls the pusher never touches the object and the
     goal has no gradient in the controls."""
     start = jnp.asarray(x0)
     # not vmapped: on a CPU a vmapped rollout runs no faster and compiles its own program
-    ends = in_lanes([lambda u=u: open_loop(problem, start, jnp.asarray(u))[-1] for u in guesses], lanes)
+    ends = lanes.in_lanes([lambda u=u: open_loop(problem, start, jnp.asarray(u))[-1] for u in guesses], n_lanes)
     misses = np.array([float(jnp.linalg.norm(miss(end))) for end in ends])
     misses = np.where(np.isfinite(misses), misses, np.inf)
     return guesses[int(np.argmin(misses))]

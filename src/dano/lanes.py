@@ -1,0 +1,59 @@
+"""Parallel lanes: independent programs run at once, each from a thread of its own.
+
+On the CPU backend an XLA execution of dano's small sequential programs (a rollout, a frame's
+Jacobian) keeps to one core, and XLA lets go of the GIL while it runs one, so programs started
+from different threads run on different cores: two rollouts from two threads take the wall time
+of one (`python bench/simulate.py`, README). An accelerator runs one program at a time, so there
+the lanes are one and batches are vmapped instead. Nothing here runs at import: the thread pool
+is made on first use.
+"""
+
+import concurrent.futures
+import os
+import threading
+from collections.abc import Callable, Sequence
+from typing import TypeVar
+
+import jax
+
+from dano.errors import InvalidValueError
+
+__all__ = ["count", "in_lanes", "in_parallel"]
+
+_T = TypeVar("_T")
+_POOL: list[concurrent.futures.ThreadPoolExecutor] = []
+_POOL_LOCK = threading.Lock()
+
+
+def count(requested: int | None = None) -> int:
+    """How many programs to run at once: `requested`, or on the CPU backend one per core this
+    process may use, elsewhere 1.
+
+    Raises:
+        InvalidValueError: `requested` below 1.
+    """
+    if requested is not None:
+        if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
+            raise InvalidValueError(f"lanes must be a whole number >= 1, got {requested!r}")
+        return requested
+    if jax.default_backend() != "cpu":
+        return 1
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def in_parallel(calls: Sequence[Callable[[], _T]]) -> list[_T]:
+    """Each call's result, once all are ready (`jax.block_until_ready`): the first made in this
+    thread, the others from threads of a pool made on first use."""
+    if len(calls) == 1:
+        return [jax.block_until_ready(calls[0]())]
+    with _POOL_LOCK:
+        if not _POOL:
+            _POOL.append(concurrent.futures.ThreadPoolExecutor(thread_name_prefix="dano-lane"))
+    futures = [_POOL[0].submit(lambda c=c: jax.block_until_ready(c())) for c in calls[1:]]
+    first = jax.block_until_ready(calls[0]())
+    return [first, *(future.result() for future in futures)]
+
+
+def in_lanes(calls: Sequence[Callable[[], _T]], lanes: int) -> list[_T]:
+    """Each call's result, in order, `lanes` calls at a time (`in_parallel`)."""
+    return [r for i in range(0, len(calls), lanes) for r in in_parallel(calls[i : i + lanes])]
