@@ -105,6 +105,31 @@ def test_multiple_shooting_windows_recover_friction(slide):
     assert abs(result.params["sliding_friction"] - MU) < 2e-3 * MU
 
 
+def test_windows_split_over_lanes_give_the_same_normal_equations(slide, monkeypatch):
+    """The objective's windows shared out over parallel lanes (`dano.lanes`: 2 lanes, 2 windows
+    each; 4 lanes, one each) give the loss, residuals and normal equations one lane gives."""
+    from dano import lanes
+    from dano.sysid.objective import Jacobian, compiled
+
+    scene, track = slide
+    problem = make_problem(scene, [Recording({"object": track})], ["friction"], window=8, initial="velocity")
+    theta = jnp.array([0.4])
+    delta = 0.01 * jnp.asarray(np.random.default_rng(3).normal(size=(problem.n_windows, problem.n_state)))
+    results = {}
+    for k in (1, 2, 4):
+        monkeypatch.setattr(lanes, "count", lambda requested=None, k=k: k)
+        loss_fn, normal_fn = compiled(problem, Jacobian.fwd)
+        results[k] = (loss_fn(theta, delta, problem.windows), *normal_fn(theta, delta, problem.windows))
+    loss, plain, parts = results[1]
+    assert float(loss) > 0 and float(jnp.max(jnp.abs(parts[2]))) > 0  # the windows' own gradients
+    for k in (2, 4):
+        other_loss, other_plain, other_parts = results[k]
+        np.testing.assert_allclose(other_loss, loss, rtol=1e-12)
+        np.testing.assert_allclose(other_plain, plain, rtol=0, atol=1e-12)
+        for a, b in zip(other_parts, parts, strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(b))))
+
+
 def _camera_view(track: Track, R: np.ndarray, offset: np.ndarray, units_per_m: float) -> Track:
     """The track as a camera would report it: rotated, shifted, in other units."""
     from dano.sysid.data import rotate, to_metric

@@ -4,8 +4,8 @@ On the CPU backend an XLA execution of dano's small sequential programs (a rollo
 Jacobian) keeps to one core, and XLA lets go of the GIL while it runs one, so programs started
 from different threads run on different cores: two rollouts from two threads take the wall time
 of one (`python bench/simulate.py`, README). An accelerator runs one program at a time, so there
-the lanes are one and batches are vmapped instead. Nothing here runs at import: the thread pool
-is made on first use.
+the lanes are one and batches are vmapped instead (`mapped`). Nothing here runs at import: the
+thread pool is made on first use.
 """
 
 import concurrent.futures
@@ -18,7 +18,7 @@ import jax
 
 from dano.errors import InvalidValueError
 
-__all__ = ["count", "in_lanes", "in_parallel"]
+__all__ = ["count", "in_lanes", "in_parallel", "mapped"]
 
 _T = TypeVar("_T")
 _POOL: list[concurrent.futures.ThreadPoolExecutor] = []
@@ -57,3 +57,14 @@ def in_parallel(calls: Sequence[Callable[[], _T]]) -> list[_T]:
 def in_lanes(calls: Sequence[Callable[[], _T]], lanes: int) -> list[_T]:
     """Each call's result, in order, `lanes` calls at a time (`in_parallel`)."""
     return [r for i in range(0, len(calls), lanes) for r in in_parallel(calls[i : i + lanes])]
+
+
+def mapped(fn: Callable, *batched):
+    """fn over the leading axis of `batched` (pytrees of independent items: windows, pushes,
+    environments) inside a traced function: on the CPU backend one item after another
+    (`jax.lax.map`), elsewhere `jax.vmap`. Under `vmap` a simulated step's branches (`lax.cond`:
+    contact or none, the broad phase) become selects that run both sides, and every loop runs as
+    long as the longest item's, which a CPU pays in full; an accelerator runs the items at once."""
+    if jax.default_backend() == "cpu":
+        return jax.lax.map(lambda args: fn(*args), batched)
+    return jax.vmap(fn)(*batched)

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dano import lanes
 from dano._mjx import mjx
 from dano.scenarios import PUSHER, at_rate, push_plan
 from dano.sim.compile import compile_scene
@@ -66,7 +67,7 @@ def push_recordings(
         d = mjx.make_data(m).replace(qpos=qpos, qvel=jnp.asarray(qvel0))
         return rollout(world, params, m, d, n_frames - 1, ctrl=ctrl).qpos
 
-    jitted = jax.jit(jax.vmap(one), compiler_options=compiler_options(world))
+    jitted = jax.jit(lambda q, c: lanes.mapped(one, q, c), compiler_options=compiler_options(world))
     qpos = np.asarray(jitted(jnp.asarray(starts), jnp.asarray(plan.ctrls)))
     d = world.dano_qpos[0]
     return [

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from dano import lanes
 from dano.sim.run import jitted
 from dano.sysid.configs import Loss, SysidError
 from dano.sysid.problem import Problem, over_windows, residuals, traced, window_residuals
@@ -62,9 +63,48 @@ def compiled(problem: Problem, jac: Jacobian, loss_name: Loss = Loss.l2):
     the loss and the normal equations are those of `robust(r, loss_name)`."""
     key = traced(problem)
     return (
-        functools.partial(jitted(_loss), key, Loss(loss_name)),
-        functools.partial(jitted(_normal_equations), key, Jacobian(jac), Loss(loss_name)),
+        _in_lanes(functools.partial(jitted(_loss), key, Loss(loss_name)), _add),
+        _in_lanes(functools.partial(jitted(_normal_equations), key, Jacobian(jac), Loss(loss_name)), _join),
     )
+
+
+def _in_lanes(fn, join):
+    """fn(θ, δ, windows) with the windows split into equal shares, one per lane (`dano.lanes`: on
+    the CPU backend one per core, each from a thread of its own), the shares' results joined by
+    `join`: as many lanes as divide the windows evenly (one program for every share). The 4-window
+    push fit of `tests/test_sysid.py` on two lanes: 24.7 -> 17.9 s cold, 12.3 -> 6.7 s warm (a
+    script, alone, the windows one after another in both)."""
+
+    def call(theta, delta, windows):
+        n = delta.shape[0]
+        k = max(d for d in range(1, min(lanes.count(), n) + 1) if n % d == 0)
+        if k == 1:
+            return fn(theta, delta, windows)
+        c = n // k
+        share = lambda x, i: x[i * c : (i + 1) * c]  # noqa: E731
+        return join(
+            lanes.in_parallel(
+                [
+                    lambda i=i: fn(theta, share(delta, i), jax.tree_util.tree_map(lambda x: share(x, i), windows))
+                    for i in range(k)
+                ]  # fmt: skip
+            )
+        )
+
+    return call
+
+
+def _add(losses):
+    return sum(losses[1:], losses[0])
+
+
+def _join(parts):
+    """The normal equations of all windows from those of shares of them: the per-window parts (the
+    residuals, g_δ, H_θδ, H_δδ) in order, the shared ones (the loss, g_θ, H_θθ) summed."""
+    plain = jnp.concatenate([p[0] for p in parts])
+    loss, g_t, g_d, H_tt, H_td, H_dd = zip(*(p[1] for p in parts), strict=True)
+    g_d, H_td, H_dd = (jnp.concatenate(x) for x in (g_d, H_td, H_dd))
+    return plain, (_add(loss), _add(g_t), g_d, _add(H_tt), H_td, H_dd)
 
 
 def _loss(problem: Problem, loss_name: Loss, theta, delta, windows):

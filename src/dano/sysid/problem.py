@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from dano import lanes
 from dano import validate as V
 from dano._mjx import mjx
 from dano.math import quat_conj, quat_exp, quat_log, quat_mul
@@ -366,17 +367,15 @@ def residuals(
 
 
 def over_windows(fn, *batched):
-    """fn mapped over the leading axis of `batched` (pytrees of windows): on the CPU backend one
-    window after another (`jax.lax.map`), on an accelerator `vmap`, and for a single window fn
-    itself. Under `vmap` the step's branches (`lax.cond`: contact or none, the broad phase) become
-    selects that run both sides, and every loop runs as long as the longest window's: the
+    """fn mapped over the leading axis of `batched` (pytrees of windows): `dano.lanes.mapped` (on
+    the CPU backend one window after another, on an accelerator `vmap`), and for a single window
+    fn itself. Under `vmap` the step's branches (`lax.cond`: contact or none, the broad phase)
+    become selects that run both sides, and every loop runs as long as the longest window's: the
     4-window push fit of `tests/test_sysid.py` (400-point bunny, 21 frames) identified in 23.0 s
     cold and 12.1 s warm one window after another, 50.8 s and 34.5 s vmapped (a script, alone),
     to the same digits."""
     if jax.tree_util.tree_leaves(batched)[0].shape[0] != 1:
-        if jax.default_backend() == "cpu":
-            return jax.lax.map(lambda args: fn(*args), batched)
-        return jax.vmap(fn)(*batched)
+        return lanes.mapped(fn, *batched)
     out = fn(*jax.tree_util.tree_map(lambda x: x[0], batched))
     return jax.tree_util.tree_map(lambda x: x[None], out)
 
