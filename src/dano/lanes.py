@@ -43,15 +43,32 @@ def count(requested: int | None = None) -> int:
 
 def in_parallel(calls: Sequence[Callable[[], _T]]) -> list[_T]:
     """Each call's result, once all are ready (`jax.block_until_ready`): the first made in this
-    thread, the others from threads of a pool made on first use."""
+    thread, the others from threads of a pool made on first use, under this thread's JAX settings
+    that its own context managers can change (`jax.enable_x64`, `jax.default_device`,
+    `jax.numpy_dtype_promotion`, `jax.numpy_rank_promotion`: a thread starts from the global
+    ones, so a call made in `with jax.enable_x64(True):` would otherwise trace in float32)."""
     if len(calls) == 1:
         return [jax.block_until_ready(calls[0]())]
     with _POOL_LOCK:
         if not _POOL:
             _POOL.append(concurrent.futures.ThreadPoolExecutor(thread_name_prefix="dano-lane"))
-    futures = [_POOL[0].submit(lambda c=c: jax.block_until_ready(c())) for c in calls[1:]]
+    settings = _settings()
+    futures = [_POOL[0].submit(_under, settings, c) for c in calls[1:]]
     first = jax.block_until_ready(calls[0]())
     return [first, *(future.result() for future in futures)]
+
+
+def _settings() -> tuple:
+    """This thread's values of the JAX settings `in_parallel` carries into its pool's threads."""
+    c = jax.config
+    return (c.jax_enable_x64, c.jax_default_device, c.jax_numpy_dtype_promotion, c.jax_numpy_rank_promotion)  # pyright: ignore[reportAttributeAccessIssue]
+
+
+def _under(settings: tuple, call: Callable[[], _T]) -> _T:
+    x64, device, dtypes, ranks = settings
+    with jax.enable_x64(x64), jax.default_device(device), jax.numpy_dtype_promotion(dtypes):
+        with jax.numpy_rank_promotion(ranks):
+            return jax.block_until_ready(call())
 
 
 def in_lanes(calls: Sequence[Callable[[], _T]], lanes: int) -> list[_T]:

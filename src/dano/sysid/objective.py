@@ -81,15 +81,12 @@ def _in_lanes(fn, join):
         if k == 1:
             return fn(theta, delta, windows)
         c = n // k
-        share = lambda x, i: x[i * c : (i + 1) * c]  # noqa: E731
-        return join(
-            lanes.in_parallel(
-                [
-                    lambda i=i: fn(theta, share(delta, i), jax.tree_util.tree_map(lambda x: share(x, i), windows))
-                    for i in range(k)
-                ]  # fmt: skip
-            )
-        )
+
+        def share(i):
+            part = lambda x: x[i * c : (i + 1) * c]  # noqa: E731
+            return fn(theta, part(delta), jax.tree_util.tree_map(part, windows))
+
+        return join(lanes.in_parallel([functools.partial(share, i) for i in range(k)]))
 
     return call
 
