@@ -37,6 +37,13 @@ def pytest_configure(config):
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+def pytest_sessionstart(session):
+    """One lane per process (`dano.lanes`) unless `DANO_LANES` says otherwise: the run's xdist
+    workers already hold the cores, and a second lane's rollouts (the line search's speculative
+    step sizes) would take time from the other worker. The tests of the lanes ask for counts."""
+    os.environ.setdefault("DANO_LANES", "1")
+
+
 def pytest_unconfigure(config):
     if getattr(config, "dano_owns_cache", False):
         shutil.rmtree(os.environ.pop(RUN_CACHE), ignore_errors=True)

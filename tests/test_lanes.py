@@ -1,6 +1,7 @@
 """Parallel lanes (`dano.lanes`): results in order, the caller's JAX settings carried into the
 lanes' threads, bad lane counts refused."""
 
+import os
 import threading
 
 import jax
@@ -46,11 +47,19 @@ def test_a_failing_call_raises_in_the_caller():
         lanes.in_parallel([lambda: jnp.ones(1), bad])
 
 
-def test_lane_counts_below_one_are_refused():
-    assert lanes.count(3) == 3 and lanes.count() >= 1
+def test_the_lane_count_asked_for_then_dano_lanes_then_the_cores(monkeypatch):
+    monkeypatch.delenv(lanes.VARIABLE, raising=False)
+    assert lanes.count() == len(os.sched_getaffinity(0))  # the CPU backend: one per core
+    assert lanes.count(3) == 3
+    monkeypatch.setenv(lanes.VARIABLE, "5")
+    assert lanes.count() == 5 and lanes.count(2) == 2
     for bad in (0, -2, True):
         with pytest.raises(InvalidValueError, match="lanes must be a whole number >= 1"):
             lanes.count(bad)
+    for text in ("0", "two", "-1", "1.5"):
+        monkeypatch.setenv(lanes.VARIABLE, text)
+        with pytest.raises(InvalidValueError, match="DANO_LANES must be a whole number >= 1"):
+            lanes.count()
 
 
 def test_mapped_equals_vmap():

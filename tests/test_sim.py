@@ -152,10 +152,11 @@ def test_vmap_of_rollouts_equals_a_loop(cube, integrator):
     np.testing.assert_allclose(batched, looped, rtol=1e-10, atol=1e-12)
 
 
-def test_a_batch_on_lanes_equals_the_vmapped_batch(cube):
+def test_a_batch_on_lanes_equals_the_vmapped_batch(cube, monkeypatch):
     """`Simulation.run_batch` with each environment by the single-environment program on parallel
     lanes (the default on one CPU device) equals the vmapped batch, environment by environment;
-    the environments differ (faster starts slide further)."""
+    the environments differ (faster starts slide further). Two lanes: 2 + 1 environments, padded."""
+    monkeypatch.setenv("DANO_LANES", "2")
     sim = Simulation.from_scene(Scene(bodies=(DanoBody("c", cube, pos=(0, 0, _rest_height(cube))),)))
     batch = sim.batch_data(3)
     batch = batch.replace(qvel=batch.qvel.at[:, 0].set(jnp.asarray([0.2, 0.5, 0.9])))

@@ -90,7 +90,7 @@ def test_jacobians_compiled_ahead_are_the_dynamics_matrices(lq):
     problem, (A, B, *_), x0 = lq
     flow = problem.flow
     for n in (N, N, N + 1):
-        P.compile_ahead(flow, n, M, None)
+        P.compile_ahead(flow, n, M, None, 1)
     # one compilation per state size (the solves of other tests may have asked for other chunks)
     assert sorted(k[2] for k in P._AHEAD[problem.dynamics] if k[0] == T and k[3:] == (M, None)) == [N, N + 1]
     us = jnp.asarray(np.random.default_rng(2).normal(size=(T, M)))

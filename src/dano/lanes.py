@@ -18,20 +18,30 @@ import jax
 
 from dano.errors import InvalidValueError
 
-__all__ = ["count", "in_lanes", "in_parallel", "mapped"]
+__all__ = ["VARIABLE", "count", "in_lanes", "in_parallel", "mapped"]
 
 _T = TypeVar("_T")
 _POOL: list[concurrent.futures.ThreadPoolExecutor] = []
 _POOL_LOCK = threading.Lock()
 
 
+VARIABLE = "DANO_LANES"
+"""The environment variable that sets the lanes when no count is asked for (e.g. 1 where several
+dano processes already share the cores, as a test run's workers do)."""
+
+
 def count(requested: int | None = None) -> int:
-    """How many programs to run at once: `requested`, or on the CPU backend one per core this
-    process may use, elsewhere 1.
+    """How many programs to run at once: `requested`; or `DANO_LANES` where set; or on the CPU
+    backend one per core this process may use, elsewhere 1.
 
     Raises:
-        InvalidValueError: `requested` below 1.
+        InvalidValueError: `requested` or `DANO_LANES` not a whole number >= 1.
     """
+    if requested is None and os.environ.get(VARIABLE, "").strip():
+        text = os.environ[VARIABLE].strip()
+        if not text.isdigit() or int(text) < 1:
+            raise InvalidValueError(f"{VARIABLE} must be a whole number >= 1, got {text!r}")
+        return int(text)
     if requested is not None:
         if isinstance(requested, bool) or not isinstance(requested, int) or requested < 1:
             raise InvalidValueError(f"lanes must be a whole number >= 1, got {requested!r}")

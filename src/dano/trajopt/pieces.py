@@ -15,6 +15,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from dano.errors import DanoError
+from dano.lanes import count as lane_count
 from dano.lanes import in_parallel
 from dano.sim.run import jitted
 
@@ -225,15 +226,16 @@ def _ahead_key(f: Flow, n: int, m: int, jacobian_batch: int | None, lanes: int) 
     return _chunks(f.horizon, lanes)[0], f.options, n, m, jacobian_batch
 
 
-def compile_ahead(f: Flow, n: int, m: int, jacobian_batch: int | None, lanes: int = 1) -> None:
+def compile_ahead(f: Flow, n: int, m: int, jacobian_batch: int | None, lanes: int | None = None) -> None:
     """Starts compiling `jacobians` for states of size n and controls of size m, over the chunks of
-    frames `jacobians_along` takes on `lanes` lanes, in a thread of its own, so the largest program
+    frames `jacobians_along` takes on `lanes` lanes (`dano.lanes.count`: None, one per core), in a
+    thread of its own, so the largest program
     a solve needs compiles while the caller goes on (XLA lets go of the GIL while it compiles): a
     push compiles it during its settling and warm start, which compile and run the forward pass.
     Once per dynamics and shapes; `jacobians_along` waits for it. An error there is left for the
     call that needs the program, which compiles it again and raises.
     """
-    key = _ahead_key(f, n, m, jacobian_batch, lanes)
+    key = _ahead_key(f, n, m, jacobian_batch, lane_count(lanes))
     with _AHEAD_LOCK:
         table = _AHEAD.setdefault(f.dynamics, {})
         if key in table:
@@ -269,11 +271,12 @@ def _finish_compiling() -> None:
         done.wait()
 
 
-def jacobians_along(f: Flow, xs, us, jacobian_batch, lanes: int = 1):
+def jacobians_along(f: Flow, xs, us, jacobian_batch, lanes: int | None = None):
     """A (T, n, n) and B (T, n, m) along the states xs (T+1, n) and controls us (T, m): `jacobians`
-    over the horizon in chunks of equal length, one per lane (`in_parallel`; the last chunk
-    padded with its last frame), once compiled (`compile_ahead`, started here if not before)."""
-    T, n, m = f.horizon, xs.shape[1], us.shape[1]
+    over the horizon in chunks of equal length, one per lane (`dano.lanes.count(lanes)`, run by
+    `in_parallel`; the last chunk padded with its last frame), once compiled (`compile_ahead`,
+    started here if not before)."""
+    T, n, m, lanes = f.horizon, xs.shape[1], us.shape[1], lane_count(lanes)
     compile_ahead(f, n, m, jacobian_batch, lanes)
     _AHEAD[f.dynamics][_ahead_key(f, n, m, jacobian_batch, lanes)].wait()
     size, count = _chunks(T, lanes)
