@@ -165,6 +165,8 @@ def test_a_batch_on_lanes_equals_the_vmapped_batch(cube, monkeypatch):
     np.testing.assert_allclose(on_lanes.qpos, vmapped.qpos, rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(on_lanes.qvel, vmapped.qvel, rtol=1e-9, atol=1e-10)
     assert np.all(np.diff(np.asarray(on_lanes.qpos[:, -1, 0])) > 1e-3)
+    with pytest.raises(SimulationError, match="at least one environment"):
+        sim.run_batch(sim.batch_data(0), 5)
 
 
 @pytest.mark.slow

@@ -97,6 +97,9 @@ class Simulation:
         2-core machine, README). None: `False` on a single CPU device, else `True`."""
         n = self.scene.n_steps if n_frames is None else n_frames
         params = self.params if params is None else params
+        leaves = jax.tree_util.tree_leaves(data)
+        if not leaves or jnp.ndim(leaves[0]) == 0 or jnp.shape(leaves[0])[0] == 0:
+            raise SimulationError("run_batch needs a batch of at least one environment (a leading axis on every leaf)")
         if vmap is None:
             vmap = not (jax.default_backend() == "cpu" and jax.local_device_count() == 1)
         if vmap:
