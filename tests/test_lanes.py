@@ -62,6 +62,17 @@ def test_the_lane_count_asked_for_then_dano_lanes_then_the_cores(monkeypatch):
             lanes.count()
 
 
+def test_shares_cover_every_item_once_in_order_in_equal_lengths():
+    for size in (1, 2, 5, 10, 20):
+        for k in (1, 2, 3, 7, 30):
+            idx = lanes.shares(size, k)
+            assert idx.shape[0] <= min(k, size)
+            flat = idx.reshape(-1)
+            np.testing.assert_array_equal(flat[:size], np.arange(size))  # in order, each once
+            assert np.all(flat[size:] == size - 1)  # the padding repeats the last item
+    assert lanes.shares(10, 3).shape == (3, 4) and lanes.shares(20, 3).shape == (3, 7)
+
+
 def test_mapped_equals_vmap():
     xs = jnp.linspace(0.0, 1.0, 5)
     np.testing.assert_allclose(

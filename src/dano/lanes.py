@@ -15,10 +15,11 @@ from collections.abc import Callable, Sequence
 from typing import TypeVar
 
 import jax
+import numpy as np
 
 from dano.errors import InvalidValueError
 
-__all__ = ["VARIABLE", "count", "in_lanes", "in_parallel", "mapped"]
+__all__ = ["VARIABLE", "count", "in_lanes", "in_parallel", "mapped", "shares"]
 
 _T = TypeVar("_T")
 _POOL: list[concurrent.futures.ThreadPoolExecutor] = []
@@ -81,9 +82,19 @@ def _under(settings: tuple, call: Callable[[], _T]) -> _T:
             return jax.block_until_ready(call())
 
 
-def in_lanes(calls: Sequence[Callable[[], _T]], lanes: int) -> list[_T]:
-    """Each call's result, in order, `lanes` calls at a time (`in_parallel`)."""
-    return [r for i in range(0, len(calls), lanes) for r in in_parallel(calls[i : i + lanes])]
+def in_lanes(calls: Sequence[Callable[[], _T]], lanes: int | None = None) -> list[_T]:
+    """Each call's result, in order, `count(lanes)` calls at a time (`in_parallel`)."""
+    k = count(lanes)
+    return [r for i in range(0, len(calls), k) for r in in_parallel(calls[i : i + k])]
+
+
+def shares(size: int, lanes: int) -> np.ndarray:
+    """Indices (k, per) that split `size` items into k <= `lanes` equal shares, one per lane (one
+    program for every share), the last padded with the last item."""
+    k = max(1, min(lanes, size))
+    per = -(-size // k)
+    k = -(-size // per)
+    return np.minimum(np.arange(k * per), size - 1).reshape(k, per)
 
 
 def mapped(fn: Callable, *batched):

@@ -256,9 +256,7 @@ def rollout_lanes(
     `dano.lanes.count(n_lanes)` equal chunks (the last padded with its last environment), each
     rolled out by `rollout_map` from a thread of its own; the trajectories in the batch's order."""
     size = jax.tree_util.tree_leaves(d)[0].shape[0]
-    count = min(lanes.count(n_lanes), size)
-    per = -(-size // count)
-    chunks = np.minimum(np.arange(per * count), size - 1).reshape(count, per)
+    chunks = lanes.shares(size, lanes.count(n_lanes))
     fn = jitted(rollout_map)
     parts = lanes.in_parallel(
         [lambda i=i: fn(world, params, m, jax.tree_util.tree_map(lambda x: x[i], d), n) for i in chunks]

@@ -31,7 +31,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from dano import lanes
 from dano.results import AbstractIterativeSolver, AbstractSolution, Result, finish, iterate
 from dano.trajopt.pieces import (
     OptimalControlProblem,
@@ -190,7 +189,7 @@ def solve(
         raise TrajoptError("the initial state is not finite")
     n, m = x0.shape[0], us.shape[1]
     fn = pieces(problem, n, m)
-    compile_ahead(fn.flow, n, m, options.jacobian_batch, lanes.count(options.lanes))  # while the first rollout runs
+    compile_ahead(fn.flow, n, m, options.jacobian_batch, options.lanes)  # while the first rollout runs
     xs = open_loop(problem, x0, us)
     if not bool(jnp.all(jnp.isfinite(xs))):
         raise TrajoptError("the initial controls' rollout is not finite")
@@ -292,7 +291,7 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
         fn, o, (xs, us, reg, iterations), J = self.fn, self.o, state.it, state.J
         iterations += 1
         expansion = state.expansion or (
-            *jacobians_along(fn.flow, xs, us, o.jacobian_batch, lanes.count(o.lanes)),
+            *jacobians_along(fn.flow, xs, us, o.jacobian_batch, o.lanes),
             *fn.call(expand, xs, us, *self.mult),
         )
         A, B, g, H, gT, HT = expansion
@@ -307,7 +306,7 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
         step_small = size <= o.gradient_tol * (1.0 + float(jnp.max(jnp.abs(us))))
         top = LINE_SEARCH_REACH * state.alpha if state.alpha else max(o.line_search)
         trials = [a for a in o.line_search if a <= top] or o.line_search[-1:]
-        for alpha, (x_new, u_new) in forward_trials(fn.flow, xs, us, k, K, trials, lanes.count(o.lanes)):
+        for alpha, (x_new, u_new) in forward_trials(fn.flow, xs, us, k, K, trials, o.lanes):
             if not bool(jnp.all(jnp.isfinite(x_new))):
                 continue
             J_new = float(fn.call(augmented, x_new, u_new, *self.mult))

@@ -11,12 +11,11 @@ from collections.abc import Callable, Iterator, Sequence
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from dano.errors import DanoError
 from dano.lanes import count as lane_count
-from dano.lanes import in_parallel
+from dano.lanes import in_parallel, shares
 from dano.sim.run import jitted
 
 
@@ -203,18 +202,15 @@ def jacobians(f: Flow, xs, us, ts, jacobian_batch):
     return jax.lax.map(lambda a: jac(*a), (xs, us, ts), batch_size=batch)
 
 
-def _chunks(horizon: int, lanes: int) -> tuple[int, int]:
-    """(frames per chunk, chunks) to cover `horizon` frames in at most `lanes` equal chunks."""
-    size = -(-horizon // max(1, min(lanes, horizon)))
-    return size, -(-horizon // size)
-
-
-def forward_trials(f: Flow, xs, us, k, K, alphas: Sequence[float], lanes: int) -> Iterator[tuple[float, tuple]]:
-    """(α, `forward` rollout at α) for each step size in order, `lanes` rollouts at a time: a line
-    search that stops at the first it accepts wastes at most `lanes` - 1 rollouts, each on a core
-    that would have waited."""
-    for i in range(0, len(alphas), lanes):
-        group = alphas[i : i + lanes]
+def forward_trials(
+    f: Flow, xs, us, k, K, alphas: Sequence[float], lanes: int | None = None
+) -> Iterator[tuple[float, tuple]]:
+    """(α, `forward` rollout at α) for each step size in order, `dano.lanes.count(lanes)` rollouts
+    at a time: a line search that stops at the first it accepts wastes at most that many less one
+    rollouts, each on a core that would have waited."""
+    step = lane_count(lanes)
+    for i in range(0, len(alphas), step):
+        group = alphas[i : i + step]
         yield from zip(group, in_parallel([lambda a=a: f.call(forward, xs, us, k, K, a) for a in group]), strict=True)
 
 
@@ -223,15 +219,15 @@ _AHEAD_LOCK = threading.Lock()
 
 
 def _ahead_key(f: Flow, n: int, m: int, jacobian_batch: int | None, lanes: int) -> tuple:
-    return _chunks(f.horizon, lanes)[0], f.options, n, m, jacobian_batch
+    return shares(f.horizon, lanes).shape[1], f.options, n, m, jacobian_batch
 
 
 def compile_ahead(f: Flow, n: int, m: int, jacobian_batch: int | None, lanes: int | None = None) -> None:
     """Starts compiling `jacobians` for states of size n and controls of size m, over the chunks of
     frames `jacobians_along` takes on `lanes` lanes (`dano.lanes.count`: None, one per core), in a
-    thread of its own, so the largest program
-    a solve needs compiles while the caller goes on (XLA lets go of the GIL while it compiles): a
-    push compiles it during its settling and warm start, which compile and run the forward pass.
+    thread of its own, so the largest program a solve needs compiles while the caller goes on (XLA
+    lets go of the GIL while it compiles): a push compiles it during its settling and warm start,
+    which compile and run the forward pass.
     Once per dynamics and shapes; `jacobians_along` waits for it. An error there is left for the
     call that needs the program, which compiles it again and raises.
     """
@@ -279,11 +275,10 @@ def jacobians_along(f: Flow, xs, us, jacobian_batch, lanes: int | None = None):
     T, n, m, lanes = f.horizon, xs.shape[1], us.shape[1], lane_count(lanes)
     compile_ahead(f, n, m, jacobian_batch, lanes)
     _AHEAD[f.dynamics][_ahead_key(f, n, m, jacobian_batch, lanes)].wait()
-    size, count = _chunks(T, lanes)
-    frames = np.minimum(np.arange(size * count), T - 1).reshape(count, size)
+    frames = shares(T, lanes)
     ts = jnp.arange(T)
     parts = in_parallel([lambda i=i: f.call(jacobians, xs[i], us[i], ts[i], jacobian_batch) for i in frames])
-    if count == 1:
+    if len(parts) == 1:
         return parts[0]
     A, B = (jnp.concatenate(p, axis=0)[:T] for p in zip(*parts, strict=True))
     return A, B

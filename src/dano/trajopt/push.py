@@ -136,7 +136,7 @@ def _settled(sim: Simulation, dynamics: Callable, horizon: int, hold: jax.Array,
     controls = jnp.broadcast_to(hold, (horizon, hold.shape[0]))
     x = jnp.concatenate([sim.data.qpos, sim.data.qvel])
     # the solve's dynamics Jacobians (its largest program) compile while this and the warm start run
-    compile_ahead(flow, x.shape[0], hold.shape[0], options.jacobian_batch, lanes.count(options.lanes))
+    compile_ahead(flow, x.shape[0], hold.shape[0], options.jacobian_batch, options.lanes)
     for _ in range(int(np.ceil(SETTLE_S / (horizon * scene.timestep) - 1e-9))):
         x = open_loop_states(flow, x, controls)[-1]
     if not np.all(np.isfinite(np.asarray(x))):
@@ -222,17 +222,15 @@ def _assemble(
     options = compiler_options(world)
     problem = OptimalControlProblem(dynamics, cost, terminal_cost, task.horizon, constraints, terminal, options)
     guesses = [pm.guess(s) for s in pm.scales]
-    first = _warm_start(
-        problem, x0, guesses, lambda x: x[a : a + 2] - goal_j, lanes.count(default_options(robot).lanes)
-    )
+    first = _warm_start(problem, x0, guesses, lambda x: x[a : a + 2] - goal_j, default_options(robot).lanes)
     return PushProblem(robot, task, sim, problem, x0, first, goal_world, ee_goal, pm.effector, full)
 
 
 def _warm_start(
-    problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss, n_lanes: int
+    problem: OptimalControlProblem, x0: np.ndarray, guesses: list[np.ndarray], miss, n_lanes: int | None
 ) -> np.ndarray:
-    """The guess whose open-loop rollout ends nearest the goal (rolled out `n_lanes` at a time, each
-    from a thread of its own: `dano.lanes.in_lanes`).
+    """The guess whose open-loop rollout ends nearest the goal (rolled out `dano.lanes.count(n_lanes)`
+    at a time, each from a thread of its own: `dano.lanes.in_lanes`).
 
     iLQR needs a start in contact: from zero controls the pusher never touches the object and the
     goal has no gradient in the controls."""
