@@ -12,6 +12,39 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+QUICK_XLA = "DANO_TEST_XLA"
+"""How the test run compiles. By default (`quick`) XLA spends little time optimising machine code
+(`jax_disable_most_optimizations`) and, as dano's own jits do (`dano.sim.run.compiler_options`),
+leaves XLA CPU's fusion emitters off in the tests' own jits too: most tests run their programs a
+few times, so compiling them is most of their time (measured on eight compile-bound tests with two
+workers: 274 s as XLA's defaults compile, 202 s with the emitters off, 153 s with both). A test
+marked `optimized` runs its programs long enough (a field fitted over hundreds of steps, an iLQR
+solve) that full optimisation pays, and gets it (`_xla_effort`). The programs are the same, so are
+the answers to within rounding; `DANO_TEST_XLA=default` compiles every test as a user's process
+does. Set before the backend starts, for this process and the `dano` command lines tests start."""
+QUICK = os.environ.setdefault(QUICK_XLA, "quick") == "quick"
+if QUICK:
+    os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
+    if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
+    jax.config.update("jax_disable_most_optimizations", True)
+
+
+@pytest.fixture(autouse=True)
+def _xla_effort(request, monkeypatch):
+    """A test marked `optimized` compiles with XLA's full optimisation (`QUICK_XLA`), in this
+    process and in the `dano` command lines it starts."""
+    if not (QUICK and request.node.get_closest_marker("optimized")):
+        yield
+        return
+    monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
+    jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", True)
+
+
 RUN_CACHE = "DANO_TEST_COMPILATION_CACHE"
 """A test run's own persistent compilation cache: a fresh folder per run (never the user's
 `~/.cache/dano/jax`), shared by the run's xdist workers and the command lines its tests start, so
@@ -42,6 +75,12 @@ def pytest_sessionstart(session):
     workers already hold the cores, and a second lane's rollouts (the line search's speculative
     step sizes) would take time from the other worker. The tests of the lanes ask for counts."""
     os.environ.setdefault("DANO_LANES", "1")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The tests marked `slow` first, each group in its files' order (a stable sort, the same in
+    every xdist worker): a long test handed out last keeps one worker busy while the other waits."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
 
 
 def pytest_unconfigure(config):

@@ -10,6 +10,7 @@ from helpers import browser_screenshot
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_demo_writes_a_bunny_dano_and_its_picture(tmp_path, capsys):
     summary = run_demo(tmp_path, resolution=64)
     assert "principal moments" in capsys.readouterr().out

@@ -204,6 +204,7 @@ def test_a_box_on_a_slope_with_mu_below_tan_theta_accelerates_at_g_sin_minus_mu_
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_the_top_of_two_stacked_boxes_stays_put():
     """DANO on DANO on the floor for 10 s (eqs. 9-10, solved jointly): the top box holds."""
     flat_box = dano.build_dano(BoxField([0.1, 0.1, 0.05]), n_points=1000, mass=1.0, log2_samples=12,

@@ -231,6 +231,7 @@ def _filmed_slide(folder, mu: float, frames: int, fps: float):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_dano_sysid_identifies_friction_from_a_filmed_slide(tmp_path, capsys):
     """End to end through the CLI: MuJoCo's pictures of a box sliding at mu = 0.5, identified from
     the masks alone (the first 4 poses give the initial state), starting from mu = 0.3."""

@@ -36,6 +36,7 @@ def test_reference_bunny_trajectories(dojo, mu):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_friction_identified_from_the_reference_trajectory(dojo):
     """Paper authors' simulator, μ = 0.7: rows 400-900 (after the bounces), 25-frame windows,
     0.25 ms substeps (Dojo's implicit contact at 2 ms behaves like the fine-step limit, our explicit
@@ -88,6 +89,7 @@ indicator_width = 0.0
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_the_command_line_alone_identifies_the_reference_friction_as_python_does(dojo, tmp_path, capsys):
     """Issue 18: the authors' μ = 0.3 trajectory through `dano build` and `dano sysid` only (the scene
     as TOML, the CSV as it is) gives the Python experiment's friction (`examples/sysid_experiments.py

@@ -137,6 +137,8 @@ def _camera_view(track: Track, R: np.ndarray, offset: np.ndarray, units_per_m: f
     return to_metric(rotate(track, R, offset), units_per_m)
 
 
+@pytest.mark.slow
+@pytest.mark.optimized
 def test_cli_sysid_from_a_tilted_camera_with_unknown_units(slide, bar, tmp_path, capsys):
     """The real-data path: two throws seen by a camera (tilted, positions in cm), gravity fitted from
     the plane they span, metres from --scale; the JSON is keyed by the names as typed."""
@@ -357,6 +359,7 @@ def test_resting_poses_of_a_bar_are_its_six_faces(bar, turned):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_a_slide_whose_orientation_the_tracker_lost_is_fitted_lying_on_a_face(slide, bar, tmp_path):
     """Issue 18: the tracker wrote a constant, wrong orientation (the bar standing on its side).
     `--orientation resting` tries the bar's six resting faces at four headings, keeps the one that

@@ -33,6 +33,8 @@ def _principal_per_mass(mesh):
     return np.sort(np.linalg.eigvalsh(exact.moment_inertia))
 
 
+@pytest.mark.slow
+@pytest.mark.optimized
 def test_a_box_fitted_from_24_small_views_is_a_solid_box(tmp_path):
     render_views(BOX, tmp_path / "views", n_views=24, resolution=32, progress=False)
     views = load_nerf_synthetic(tmp_path / "views")
@@ -63,6 +65,7 @@ def test_fit_refuses_bad_settings_and_views_without_masks(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_the_bunny_fitted_from_50_views_gives_the_mesh_dano(tmp_path, bunny_mesh):
     """Issue acceptance: centre of mass within 2 % of the box diagonal, principal moments within 5 %."""
     render_views(bunny_mesh, tmp_path / "bunny", n_views=50, resolution=64, progress=False)
@@ -100,6 +103,7 @@ def box_video(tmp_path_factory):
     return pos, quat, camera, load_masks(folder / "masks", 8, (48, 64))
 
 
+@pytest.mark.optimized
 def test_tracking_a_rendered_box_sliding_and_turning(box_video):
     pos, quat, camera, masks = box_video
     field = mesh_field(BOX, resolution=80, progress=False)
@@ -110,6 +114,7 @@ def test_tracking_a_rendered_box_sliding_and_turning(box_video):
     assert result.losses.max() < 0.02
 
 
+@pytest.mark.optimized
 def test_refine_pulls_noisy_poses_back_onto_the_masks(box_video):
     pos, quat, camera, masks = box_video
     config = TrackConfig(refine_iterations=80)

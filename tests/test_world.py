@@ -188,6 +188,7 @@ def test_friction_is_identified_from_a_slide_on_the_worlds_table(soap, tmp_path)
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_a_sphere_pushes_the_dano_to_its_goal_on_the_worlds_table(soap, tmp_path):
     """Trajectory optimisation in the world: the soap stood on the table top (what the world has
     under the point asked for), pushed 5 cm by the force-controlled sphere, ends at its goal and
