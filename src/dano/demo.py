@@ -58,7 +58,7 @@ def run_demo(
     if simulate:
         summary |= simulate_demos(dano, out)
         summary |= identification_demo(out)
-        summary |= push_demo(out, seed=seed)
+        summary |= push_demo(out, seed=seed, field=field)
     with atomic_write(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=2))
     print(f"wrote {demo_report(out, summary, resolution, n_points, seed)}")
@@ -184,13 +184,16 @@ def identification_demo(out: Path, noise: float = 1e-3, seed: int = 0) -> dict:
     return {"sysid_soap_slide": {"friction": mu, "stderr": err, "true": 0.5, "seconds": result.seconds}}
 
 
-def push_demo(out: Path, seed: int = 0) -> dict:
+def push_demo(out: Path, seed: int = 0, field=None) -> dict:
     """Sim-to-robot (paper Sec. V-B): a sphere end effector pushes a 100-point bunny 8 cm along x,
-    by constrained iLQR through the simulator; the open-loop replay rendered to MP4."""
+    by constrained iLQR through the simulator; the open-loop replay rendered to MP4. `field`: the
+    bunny's density field (`run_demo` passes the one it baked), or None to bake one of 48 nodes."""
     from dano.sim.render import coverage
     from dano.trajopt.push import PushTask, push_problem, render_push, replay_frames, solve_push
 
-    bunny = build_dano(mesh_field(bunny_mesh(), resolution=48, progress=False), n_points=100, mass=0.5, seed=seed)
+    if field is None:
+        field = mesh_field(bunny_mesh(), resolution=48, progress=False)
+    bunny = build_dano(field, n_points=100, mass=0.5, seed=seed)
     push = push_problem(bunny, "sphere", PushTask(goal=(0.08, 0.0), horizon=8))
     result = solve_push(push)
     s = result.solution

@@ -288,6 +288,10 @@ def default_options(robot: "str | AbstractPusher") -> Options:
     return DEFAULT_OPTIONS
 
 
+REPLAY_FRAMES = 4
+"""Frames per control step of the open-loop replay (`solve_push`, `render_push`)."""
+
+
 def solve_push(push: PushProblem, options: Options | None = None, progress: bool = False) -> PushResult:
     """Solves the push from its warm start (`default_options(robot)` unless given) and replays the
     controls open loop."""
@@ -295,8 +299,10 @@ def solve_push(push: PushProblem, options: Options | None = None, progress: bool
     sol = solve(push.problem, jnp.asarray(push.x0), jnp.asarray(push.initial_controls), options, progress=progress)
     final = np.asarray(push.object_position(sol.states[-1]))
     ee = np.asarray(push.effector(jnp.asarray(sol.states[-1]))[0])
-    ctrl = push.full_ctrl(jnp.asarray(sol.controls))
-    replay = push.sim.run(push.task.horizon, ctrl=ctrl)
+    # replayed at the frames `render_push` draws (the same substeps, regrouped), so that a video of
+    # the push runs the program compiled here; every k-th frame is the replay at the push's frames
+    _, fine, _, k = _replayed(push, jnp.asarray(sol.controls), REPLAY_FRAMES)
+    replay = Trajectory(fine.qpos[::k], fine.qvel[::k], None if fine.fallbacks is None else fine.fallbacks[::k])
     gap = float(np.linalg.norm(np.asarray(push.object_position(replay.qpos[-1])) - final))
     return PushResult(
         solution=sol, final_error_m=float(np.linalg.norm(final[:2] - push.goal_world)),
@@ -308,7 +314,7 @@ def render_push(
     push: PushProblem,
     result: PushResult,
     path,
-    frames_per_step: int = 4,
+    frames_per_step: int = REPLAY_FRAMES,
     progress: bool = True,
     style: str = "surface",
     contacts: bool = False,
@@ -327,16 +333,22 @@ def render_push(
     return render_video(sim, traj, path, fps=fps, progress=progress, style=style, contacts=forces)
 
 
-def replay_frames(push: PushProblem, result: PushResult, frames_per_step: int = 4):
+def replay_frames(push: PushProblem, result: PushResult, frames_per_step: int = REPLAY_FRAMES):
     """The open-loop replay with `frames_per_step` frames per control step (the same substeps,
     regrouped: a control is held over its step): its simulation, trajectory and per-frame ctrl."""
+    return _replayed(push, jnp.asarray(result.solution.controls), frames_per_step)[:3]
+
+
+def _replayed(push: PushProblem, controls, frames_per_step: int):
+    """`replay_frames` of the optimiser's controls, and the frames per step it took: the largest
+    count up to `frames_per_step` that divides the scene's substeps."""
     scene = push.sim.scene
     assert scene.substeps is not None  # `Scene.__post_init__` sets it for each integrator
-    while scene.substeps % frames_per_step:  # the largest count up to the one asked that divides the substeps
+    while scene.substeps % frames_per_step:
         frames_per_step -= 1
     fine = dataclasses.replace(
         scene, timestep=scene.timestep / frames_per_step, substeps=scene.substeps // frames_per_step
     )
     sim = Simulation.from_scene(fine)
-    ctrl = jnp.repeat(push.full_ctrl(jnp.asarray(result.solution.controls)), frames_per_step, axis=0)
-    return sim, sim.run(push.task.horizon * frames_per_step, ctrl=ctrl), ctrl
+    ctrl = jnp.repeat(push.full_ctrl(controls), frames_per_step, axis=0)
+    return sim, sim.run(push.task.horizon * frames_per_step, ctrl=ctrl), ctrl, frames_per_step
