@@ -77,12 +77,6 @@ def pytest_sessionstart(session):
     os.environ.setdefault("DANO_LANES", "1")
 
 
-def pytest_collection_modifyitems(config, items):
-    """The tests marked `slow` first, each group in its files' order (a stable sort, the same in
-    every xdist worker): a long test handed out last keeps one worker busy while the other waits."""
-    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
-
-
 def pytest_unconfigure(config):
     if getattr(config, "dano_owns_cache", False):
         shutil.rmtree(os.environ.pop(RUN_CACHE), ignore_errors=True)
