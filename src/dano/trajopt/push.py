@@ -302,7 +302,7 @@ def solve_push(push: PushProblem, options: Options | None = None, progress: bool
     # replayed at the frames `render_push` draws (the same substeps, regrouped), so that a video of
     # the push runs the program compiled here; every k-th frame is the replay at the push's frames
     _, fine, _, k = _replayed(push, jnp.asarray(sol.controls), REPLAY_FRAMES)
-    replay = Trajectory(fine.qpos[::k], fine.qvel[::k], None if fine.fallbacks is None else fine.fallbacks[::k])
+    replay = jax.tree_util.tree_map(lambda x: x[::k], fine)
     gap = float(np.linalg.norm(np.asarray(push.object_position(replay.qpos[-1])) - final))
     return PushResult(
         solution=sol, final_error_m=float(np.linalg.norm(final[:2] - push.goal_world)),
