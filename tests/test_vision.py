@@ -1,5 +1,7 @@
 """From pixels: fitting a field to rendered views, solidifying it, tracking a rendered video."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,9 +49,12 @@ def test_a_box_fitted_from_24_small_views_is_a_solid_box(tmp_path):
     # One 32 px pixel is ~2.5 mm on the box; its half-sizes are 20-40 mm: moments within 15 %.
     np.testing.assert_allclose(np.asarray(d.com), 0.0, atol=2.5e-3)
     np.testing.assert_allclose(np.asarray(d.principal_moments()), _principal_per_mass(BOX), rtol=0.15)
-    again = fit_field(views, config, key=jax.random.key(0), progress=False)
-    assert isinstance(again.field, GridField)
-    np.testing.assert_array_equal(np.asarray(again.field.density), np.asarray(result.field.density))
+    # The same seed, the same field (a short fit twice: the rays drawn, the samples and the start).
+    short = dataclasses.replace(config, steps=10)
+    first, again = (fit_field(views, short, key=jax.random.key(0), progress=False) for _ in range(2))
+    assert isinstance(again.field, GridField) and isinstance(first.field, GridField)
+    np.testing.assert_array_equal(np.asarray(again.field.density), np.asarray(first.field.density))
+    assert not np.array_equal(np.asarray(first.field.density), np.asarray(result.field.density))
 
 
 def test_fit_refuses_bad_settings_and_views_without_masks(tmp_path):
@@ -70,7 +75,7 @@ def test_the_bunny_fitted_from_50_views_gives_the_mesh_dano(tmp_path, bunny_mesh
     """Issue acceptance: centre of mass within 2 % of the box diagonal, principal moments within 5 %."""
     render_views(bunny_mesh, tmp_path / "bunny", n_views=50, resolution=64, progress=False)
     views = load_nerf_synthetic(tmp_path / "bunny")
-    result = fit_field(views, FitConfig(steps=500), key=jax.random.key(0), progress=False)  # 0.2 % and 1.4 % measured
+    result = fit_field(views, FitConfig(steps=300), key=jax.random.key(0), progress=False)  # 0.3 % and 2.1 % measured
     assert isinstance(result.field, GridField)
     solid = solidify(result.field, views)
     d = dano.build_dano(solid.field, n_points=3000, mass=1.0)

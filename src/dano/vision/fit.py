@@ -274,7 +274,9 @@ def fit_field(
 @dataclasses.dataclass(frozen=True)
 class Solid:
     """A fitted field made a solid: `field` is `peak` where no camera sees into the object and 0 where
-    one does (trilinear in between); `seen` (nodes) is the largest transmittance from any camera."""
+    one does (trilinear in between); `seen` (nodes) is the largest transmittance from the cameras
+    that looked at the node: every camera where it is `threshold` or less (inside), the cameras up to
+    the first that sees it past `threshold` where it is more (free space is settled by one camera)."""
 
     field: GridField
     seen: np.ndarray
@@ -312,11 +314,18 @@ def solidify(
         return 1.0 - render_opacity(field, origins, directions, near, jnp.maximum(distance, near), n_samples)
 
     seen = np.zeros(len(nodes))
+    chunk = min(chunk, len(nodes))
     for k in chosen:
         eye = jnp.asarray(views.cameras[k].c2w[:3, 3])
-        for start in range(0, len(nodes), chunk):
-            part = np.asarray(transmittance(eye, jnp.asarray(nodes[start : start + chunk])))
-            seen[start : start + chunk] = np.maximum(seen[start : start + chunk], part)
+        # Only the nodes no camera has seen past `threshold` yet: a node seen once is free space
+        # whatever the next cameras see (most of the grid is settled by the first few cameras).
+        # Each chunk is padded to `chunk` nodes so that one program serves them all.
+        open_nodes = np.flatnonzero(seen <= threshold)
+        for start in range(0, len(open_nodes), chunk):
+            index = open_nodes[start : start + chunk]
+            padded = np.pad(index, (0, chunk - len(index)), mode="edge")
+            part = np.asarray(transmittance(eye, jnp.asarray(nodes[padded])))[: len(index)]
+            seen[index] = np.maximum(seen[index], part)
     seen = seen.reshape(field.density.shape)
     labels, n = cast(tuple[np.ndarray, int], ndimage.label(seen <= threshold))
     if n == 0:
