@@ -217,6 +217,7 @@ def test_gravity_can_be_given_instead_of_fitted(slide, bar, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_push_identifies_mass_scale_and_friction(bunny_field):
     """Paper Fig. 6b: pushes by a 1 kg sphere under a known force (4 here, 10 in the paper), same
     simulator, noise-free. The explicit step's fit reached the truth to < 0.1 %; at the implicit
