@@ -277,7 +277,7 @@ def test_jacfwd_and_vmap_over_parameters_and_controls(cube):
     pusher = Primitive("ee", "sphere", (0.03,), pos=(-0.085, 0.01, z), mode="actuated", mass=1.0)
     body = DanoBody("c", cube, pos=(0, 0, z))
     sim = Simulation.from_scene(Scene(substeps=2, bodies=(body,), primitives=(pusher,)))
-    n = 120
+    n = 60
 
     def final(inertia_scale, force, mu):
         contact = tuple(eqx.tree_at(lambda c: c.sliding_friction, p, mu) for p in sim.params.contact)
@@ -305,4 +305,4 @@ def test_jacfwd_and_vmap_over_parameters_and_controls(cube):
     # vmap over the parameters equals the unbatched rollout (the value beside the derivatives);
     # friction changes where the cube ends
     np.testing.assert_allclose(batched[0], value, rtol=1e-10, atol=1e-13)
-    assert abs(batched[5, 0] - batched[6, 0]) > 1e-3
+    assert abs(batched[5, 0] - batched[6, 0]) > 1e-3  # 11 mm measured (0.2 vs 0.8)
