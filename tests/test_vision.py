@@ -10,6 +10,7 @@ import trimesh
 
 import dano
 from dano.fields import GridField, mesh_field
+from dano.fields.grid import grid_nodes
 from dano.math import quat_exp
 from dano.vision import camera_from_fov, load_masks, load_nerf_synthetic, look_at, render_mesh_video, render_views
 from dano.vision.fit import FitConfig, FitError, GridModel, fit_field, solidify
@@ -215,3 +216,20 @@ def test_every_solver_reports_in_one_shape(tmp_path):
     assert isinstance(bad.field, GridField) and np.all(np.isfinite(np.asarray(bad.field.density)))
     with pytest.raises(SolverError, match="^fit_field failed: the loss became non-finite: stopped at step 1"):
         fit_field(views, wild, key=jax.random.key(0), progress=False)
+
+
+def test_solidify_carves_a_box_out_of_the_space_its_cameras_see(tmp_path):
+    """A box's own field (no fit) seen from 8 cameras around it: every node more than a cell and a
+    half inside the box is solid, every node as far outside is carved away (each camera looks only
+    at the nodes the ones before it have not seen: a wrong index there shows as a hole or a speck)."""
+    render_views(BOX, tmp_path / "views", n_views=8, resolution=16, progress=False)
+    views = load_nerf_synthetic(tmp_path / "views")
+    field = mesh_field(BOX, resolution=24, progress=False)
+    solid = solidify(field, views)
+    nodes = grid_nodes(field.bounds, field.density.shape).reshape(-1, 3)
+    margin = 1.5 * float(np.max(field.spacing))
+    depth = np.min(np.asarray([0.04, 0.025, 0.02]) - np.abs(nodes), axis=1)  # > 0 inside, distance to a face
+    solid_nodes = np.asarray(solid.field.density).reshape(-1) > 0
+    assert solid_nodes[depth > margin].all() and not solid_nodes[depth < -margin].any()
+    assert (solid.seen.reshape(-1)[depth > margin] <= 0.8).all()
+    assert depth[depth > margin].size > 50 and depth[depth < -margin].size > 1000
