@@ -226,7 +226,8 @@ def test_solidify_carves_a_box_out_of_the_space_its_cameras_see(tmp_path):
     views = load_nerf_synthetic(tmp_path / "views")
     field = mesh_field(BOX, resolution=24, progress=False)
     solid = solidify(field, views)
-    nodes = grid_nodes(field.bounds, field.density.shape).reshape(-1, 3)
+    nx, ny, nz = field.density.shape
+    nodes = grid_nodes(field.bounds, (nx, ny, nz)).reshape(-1, 3)
     margin = 1.5 * float(np.max(field.spacing))
     depth = np.min(np.asarray([0.04, 0.025, 0.02]) - np.abs(nodes), axis=1)  # > 0 inside, distance to a face
     solid_nodes = np.asarray(solid.field.density).reshape(-1) > 0
