@@ -15,6 +15,7 @@ from dano.fields import AbstractField
 from dano.fields.base import Bounds, CallableField, as_bounds
 from dano.fields.grid import GridField
 from dano.math import quat_conj, quat_exp, quat_mul, quat_to_mat, smootherstep
+from dano.sim.run import jitted
 from dano.sysid.configs import SysidError
 from dano.sysid.problem import AbstractObservation, Problem, own_unknowns
 from dano.sysid.windows import Windows
@@ -322,4 +323,6 @@ def simulated_silhouettes(problem: Problem, theta, delta) -> tuple[np.ndarray, n
     q = simulate_windows(problem, theta, delta)[0, 1:]
     w0 = jax.tree_util.tree_map(lambda x: x[0], problem.windows)
     params = own_unknowns(w0, jnp.asarray(delta)[0])
-    return np.asarray(observation.silhouettes(q, w0.observed, params)), np.asarray(w0.observed.mask)
+    # one compiled program (called as it is, every operation of the vmapped render compiled alone)
+    opacity = jitted(lambda o, q, t, p: o.silhouettes(q, t, p))(observation, q, w0.observed, params)
+    return np.asarray(opacity), np.asarray(w0.observed.mask)
