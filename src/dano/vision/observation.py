@@ -323,6 +323,7 @@ def simulated_silhouettes(problem: Problem, theta, delta) -> tuple[np.ndarray, n
     q = simulate_windows(problem, theta, delta)[0, 1:]
     w0 = jax.tree_util.tree_map(lambda x: x[0], problem.windows)
     params = own_unknowns(w0, jnp.asarray(delta)[0])
-    # one compiled program (called as it is, every operation of the vmapped render compiled alone)
-    opacity = jitted(lambda o, q, t, p: o.silhouettes(q, t, p))(observation, q, w0.observed, params)
+    # one compiled program, kept for the next call (unjitted, each operation of the vmapped render
+    # compiled alone)
+    opacity = jitted(PixelObservation.silhouettes)(observation, q, w0.observed, params)
     return np.asarray(opacity), np.asarray(w0.observed.mask)
