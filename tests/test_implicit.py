@@ -10,11 +10,12 @@ import pytest
 
 import dano
 from dano.contact import ContactParams
-from dano.fields import BoxField
+from dano.fields import BoxField, CapsuleField
 from dano.fields.base import TransformedField
 from dano.math import quat_to_mat
-from dano.sim import DanoBody, Scene
+from dano.sim import DanoBody, Primitive, Scene
 from dano.sim.compile import compile_scene
+from dano.sim.groups import pair_groups as implicit_groups
 from dano.sim.run import Simulation, SimulationError, mechanical_energy
 from dano.sim.step import rollout
 from helpers import partial_differences
@@ -238,6 +239,60 @@ def test_implicit_step_gradients_match_central_differences(flat_box):
     fd = np.asarray(partial_differences(lambda *t: program(jnp.asarray(t))[0], theta, rel_step=1e-5))
     np.testing.assert_allclose(grad, fd, rtol=2e-4, atol=1e-12)
     assert grad[0] < 0 and grad[2] > 0  # more friction, shorter slide; faster start, further
+
+
+@pytest.mark.slow
+def test_pairs_of_two_danos_computed_as_groups_equal_pair_by_pair(monkeypatch):
+    """Two DANOs of one point count, a flat-faced box and a round-ended capsule both turned off
+    their axes, slide on the floor while a free sphere runs into the box. The step computes both
+    floor pairs as one group and both sphere pairs as another (`pair_groups` across DANOs, each
+    pair with its own velocities); pair by pair it must give the same motion, and its derivative
+    w.r.t. friction must match central differences."""
+    from dano.sim import implicit
+
+    def turned(field, R):
+        R, _ = np.linalg.qr(R)
+        field = TransformedField(field, rotation=R * np.sign(np.linalg.det(R)))
+        return dano.build_dano(field, n_points=200, mass=0.4, log2_samples=12, replicates=4, grid_resolution=16)
+
+    box = turned(BoxField([0.1, 0.06, 0.03], width=0.002), TURNED)
+    capsule = turned(CapsuleField(0.02, 0.03), TURNED.T)
+    lift = [-float(np.min(np.asarray(b.body_points)[:, 2])) - 2e-4 for b in (box, capsule)]
+    bodies = (
+        DanoBody("box", box, pos=(0.0, 0.0, lift[0]), vel=(0.4, 0.1, 0.0)),
+        DanoBody("capsule", capsule, pos=(0.3, 0.0, lift[1]), vel=(0.0, -0.3, 0.0), angvel=(0.0, 0.0, 2.0)),
+    )
+    ball = Primitive("ball", "sphere", (0.02,), pos=(-0.12, 0.0, 0.03), mode="free", mass=0.2, vel=(4.0, 0.0, 0.0))
+    scene = Scene(bodies=bodies, primitives=(ball,), integrator="implicit", substeps=1, contact_budget=48)
+    sim = Simulation.from_scene(scene)
+    grouped = []
+
+    def recorded(*args, **kwargs):
+        grouped.append(implicit_groups(*args, **kwargs))
+        return grouped[-1]
+
+    monkeypatch.setattr(implicit, "pair_groups", recorded)
+
+    def final(mu):
+        contact = tuple(dataclasses.replace(p, sliding_friction=mu) for p in sim.params.contact)
+        traj = rollout(sim.world, dataclasses.replace(sim.params, contact=contact), sim.mjx_model, sim.data, 40)
+        return jnp.concatenate([traj.qpos[-1], traj.qvel[-1]])
+
+    mu0 = jnp.asarray(0.4)
+    derivative = jax.jit(lambda mu: jax.jvp(final, (mu,), (jnp.ones_like(mu),)))  # a jvp: no batch of one
+    x, jac = derivative(mu0)
+    eps = 1e-6
+    fd = (derivative(mu0 + eps)[0] - derivative(mu0 - eps)[0]) / (2 * eps)
+    # pairs: box-floor, box-ball, box-capsule, capsule-floor, capsule-ball
+    assert grouped[0] == ((0, 3), (1, 4), (2,))
+    monkeypatch.setattr(implicit, "pair_groups", lambda pair_list, *_, **__: tuple((j,) for j in range(len(pair_list))))
+    alone = jax.jit(final)(mu0)
+
+    np.testing.assert_allclose(x, alone, rtol=1e-10, atol=1e-12)
+    qvel = np.asarray(x)[sim.mjx_model.nq :]
+    assert qvel[0] > 0.5 and qvel[12] < 3.5  # the sphere hit the box: the box faster, the sphere slower
+    assert np.all(np.abs(np.asarray(jac)) < 1e3) and np.max(np.abs(np.asarray(jac))) > 1e-3  # friction matters
+    np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * float(np.max(np.abs(fd))))
 
 
 @pytest.mark.slow

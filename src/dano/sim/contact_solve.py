@@ -66,19 +66,20 @@ def _centroid(patch: Patch, psi: Array) -> Patch:
 class ContactProblem(NamedTuple):
     """One step's contact problem, as the solve sees it (built by `dano.sim.implicit.implicit_step`).
 
-    The pairs come in groups (`dano.sim.groups`): the pairs of one DANO whose partners move at known
-    velocities and have shapes of one kind and size (a robot's finger boxes; its meshes of as many
-    planes) are stacked leaf-wise along a leading axis and computed as one
-    (`each`), so the step's program holds one copy of the contact per group, not per pair; every
-    other pair is a group of its own.
+    The pairs come in groups (`dano.sim.groups.pair_groups`): pairs whose DANOs have points of one
+    size and budget and whose partners are primitives of one kind and size (a robot's finger boxes;
+    its meshes of as many planes; the floor under two bunnies), all moving at known velocities or
+    all solved for, are stacked leaf-wise along a leading axis and computed as one (`each`), so
+    the step's program holds one copy of the contact per group, not per pair; a pair with a DANO
+    partner is a group of its own. Each pair keeps its own velocity vector (`slots`).
 
     Attributes:
         world, params, h: the scene, its parameters and the step.
         n: DANOs; their 6 velocities come first in V, then each free or actuated primitive's.
         pair_list: the pairs (`dano.sim.world.pairs`) and `mates` their partners.
         groups: the pairs (indices into `pair_list`) of each group.
-        other: per group, where its partner sits in V (a DANO or a free primitive), or -1 (its
-            partners move at known velocities).
+        other: per pair, where its partner sits in V (a DANO or a free primitive), or -1 (it moves
+            at a known velocity).
         contact: per group, its pairs' `ContactParams` stacked.
         supports, patches: per group, its pairs' points at the pose the free motion reaches, stacked.
         V_free: V~ (6 n_all,); M its mass matrix; `locked` the velocities held at 0.
@@ -113,27 +114,38 @@ class ContactProblem(NamedTuple):
         return self.world.force_mode == "centroid"
 
 
-def slots(c: ContactProblem, g: int) -> list[int]:
-    """Where group g's velocity vector (V_a, or (V_a, V_b) with a partner in V) sits in V."""
-    i, o = c.pair_list[c.groups[g][0]][0], c.other[g]
-    return list(range(6 * i, 6 * i + 6)) + (list(range(6 * o, 6 * o + 6)) if o >= 0 else [])
+def slots(c: ContactProblem, g: int) -> np.ndarray:
+    """Where each pair of group g has its velocity vector (V_a, or (V_a, V_b) with a partner in V)
+    in V: (k, m) indices."""
+
+    def row(j):
+        i, o = c.pair_list[j][0], c.other[j]
+        return list(range(6 * i, 6 * i + 6)) + (list(range(6 * o, 6 * o + 6)) if o >= 0 else [])
+
+    return np.asarray([row(j) for j in c.groups[g]])
 
 
 def pair_velocity(c: ContactProblem, g: int, V: Array) -> Array:
+    """Each pair's velocity vector in group g at V, (k, m)."""
     return V[jnp.asarray(slots(c, g))]
 
 
 def scatter_pair(c: ContactProblem, g: int, grad: Array, H: Array) -> tuple[Array, Array]:
-    """A group's gradient (m,) and Hessian (m, m) into the (6N,) and (6N, 6N) of all unknowns."""
-    idx = jnp.asarray(slots(c, g))
+    """A group's gradients (k, m) and Hessians (k, m, m), one per pair, added into the (6N,) and
+    (6N, 6N) of all unknowns; summed first where the pairs share their unknowns (one DANO's)."""
+    idx = slots(c, g)
     size = c.V_free.shape[0]
-    return jnp.zeros(size).at[idx].add(grad), jnp.zeros((size, size)).at[idx[:, None], idx[None, :]].add(H)
+    if np.all(idx == idx[0]):
+        grad, H, idx = jnp.sum(grad, axis=0), jnp.sum(H, axis=0), idx[0]
+        at = jnp.asarray(idx)
+        return jnp.zeros(size).at[at].add(grad), jnp.zeros((size, size)).at[at[:, None], at[None, :]].add(H)
+    at = jnp.asarray(idx)
+    return jnp.zeros(size).at[at].add(grad), jnp.zeros((size, size)).at[at[:, :, None], at[:, None, :]].add(H)
 
 
 def point_sets(c: ContactProblem, sups, pts) -> _Sets:
     def u_n0(g, pt):
-        Vg = pair_velocity(c, g, c.V_free)
-        return each(lambda q: normal_velocity(q, Vg)[0], pt)
+        return each(lambda q, v: normal_velocity(q, v)[0], pt, pair_velocity(c, g, c.V_free))
 
     # The damper's overlaps, lagged: at the pose the free motion reaches.
     psi0 = tuple(each(lambda s: overlap(s, s.s0), sup) for sup in sups)
@@ -145,36 +157,29 @@ def with_friction(c: ContactProblem, sets: _Sets, V: Array, on: Array) -> list[P
     (0: no friction, 1)."""
 
     def group(g):
-        Vg = pair_velocity(c, g, V)
-
-        def one(p, sup, pt, psi0, u_n0):
+        def one(p, sup, pt, psi0, u_n0, Vg):
             _, _, _, s, u_n = normal_terms(p, sup, pt, psi0, u_n0, c.h, Vg, c.centroid)
             N = on * friction_normal(p.impact_spring * overlap(sup, s) - p.impact_damper * psi0 * u_n)
             fr = Patch(pt.r_a, pt.r_b, pt.u_b, pt.w_b, pt.normal, N, pt.joint)
             return _centroid(fr, N) if c.centroid else fr
 
-        return each(one, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g])
+        Vg = pair_velocity(c, g, V)
+        return each(one, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g], Vg)
 
     return [group(g) for g in range(len(c.groups))]
 
 
 def _member_terms(c: ContactProblem, sets: _Sets, g: int, friction: list[Patch], V: Array):
     """Each pair of group g: its U + h R + h D (D with the friction patches) at V, with its gradient
-    and Hessian w.r.t. the group's velocity vector (stacked)."""
-    Vg = pair_velocity(c, g, V)
+    and Hessian w.r.t. its velocity vector (stacked: (k,), (k, m), (k, m, m))."""
 
-    def one(p, sup, pt, psi0, u_n0, fr):
+    def one(p, sup, pt, psi0, u_n0, fr, Vg):
         value, grad, H, _, _ = normal_terms(p, sup, pt, psi0, u_n0, c.h, Vg, c.centroid)
         fv, fg, fH = patch_terms(p, fr, Vg)
         return value + c.h * fv, grad + c.h * fg, H + c.h * fH
 
-    return each(one, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g], friction[g])
-
-
-def pair_terms(c: ContactProblem, sets: _Sets, g: int, friction: list[Patch], V: Array):
-    """Group g's U + h R + h D (D with the friction patches) at V, with its gradient and Hessian
-    w.r.t. the group's velocity vector: its pairs' summed."""
-    return tuple(jnp.sum(x, axis=0) for x in _member_terms(c, sets, g, friction, V))
+    args = (c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g], friction[g])
+    return each(one, *args, pair_velocity(c, g, V))
 
 
 def objective(c: ContactProblem, sets: _Sets, friction: list[Patch]):
@@ -184,9 +189,9 @@ def objective(c: ContactProblem, sets: _Sets, friction: list[Patch]):
         e = V - c.V_free
         value, grad, H = 0.5 * e @ c.M @ e, c.M @ e, c.M
         for g in range(len(c.groups)):
-            vg, gg, Hg = pair_terms(c, sets, g, friction, V)
+            vg, gg, Hg = _member_terms(c, sets, g, friction, V)
             gg, Hg = scatter_pair(c, g, gg, Hg)
-            value, grad, H = value + vg, grad + gg, H + Hg
+            value, grad, H = value + jnp.sum(vg), grad + gg, H + Hg
         if c.locked.any():  # held velocities: no gradient, a unit Hessian (Newton leaves them at 0)
             grad = jnp.where(c.locked, 0.0, grad)
             H = jnp.where(c.locked[:, None] | c.locked[None, :], jnp.eye(c.V_free.shape[0]), H)
@@ -235,13 +240,13 @@ def missed(c: ContactProblem, sets: _Active, u_n0: tuple, V: Array) -> Array:
         dV = Vg - pair_velocity(c, g, c.V_free)
 
         def exact(g=g, a=a, Vg=Vg):
-            def one(sup, pt, act, u):
-                return active.missed(sup, pt, act, u, Vg, c.h)
+            def one(sup, pt, act, u, v):
+                return active.missed(sup, pt, act, u, v, c.h)
 
-            return jnp.any(each(one, c.supports[g], c.patches[g], a, u_n0[g]))
+            return jnp.any(each(one, c.supports[g], c.patches[g], a, u_n0[g], Vg))
 
         # the exact check under a once-or-never loop: in a batch, only when some element needs it
-        safe = jnp.all(each(lambda s, d, dV=dV: active.bound_holds(s, d, dV, c.h), c.supports[g], drop))
+        safe = jnp.all(each(lambda s, d, v: active.bound_holds(s, d, v, c.h), c.supports[g], drop, dV))
         out = out | run_if(~safe, lambda _, exact=exact: exact(), jnp.zeros((), bool))
     return out
 
@@ -322,7 +327,7 @@ def group_wrench(c: ContactProblem, s: Solution, g: int, point: bool = False) ->
     normal force acts ((k, 3): the centroid of its points' positive normal forces, world; the DANO's
     centre without any)."""
     last_on = jnp.asarray(float(PASSES > 1), c.V_free.dtype)
-    centre = c.frames[c.pair_list[c.groups[g][0]][0]].x
+    centres = jnp.stack([c.frames[c.pair_list[j][0]].x for j in c.groups[g]])
     Vg = pair_velocity(c, g, s.V_next)
 
     def of(sets):
@@ -330,13 +335,13 @@ def group_wrench(c: ContactProblem, s: Solution, g: int, point: bool = False) ->
         if not point:
             return -grads[:, :6] / c.h, None
 
-        def at(p, sup, pt, psi0, u_n0):
+        def at(p, sup, pt, psi0, u_n0, Vg, centre):
             _, _, _, depth, u_n = normal_terms(p, sup, pt, psi0, u_n0, c.h, Vg, c.centroid)
             N = jnp.maximum(p.impact_spring * overlap(sup, depth) - p.impact_damper * psi0 * u_n, 0.0)
             total = jnp.sum(N)
             return jnp.where(total > 0, sup.at @ N / jnp.where(total > 0, total, 1.0), centre)
 
-        points = each(at, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g])
+        points = each(at, c.contact[g], sets.supports[g], sets.patches[g], sets.psi0[g], sets.u_n0[g], Vg, centres)
         return -grads[:, :6] / c.h, points
 
     def every():
@@ -353,7 +358,7 @@ def reactions(c: ContactProblem, s: Solution) -> Array:
         e = slice(6 * (c.n + k), 6 * (c.n + k) + 6)
         xfrc = scatter(xfrc, body, c.M[e, e] @ (s.V_next[e] - c.V_free[e]) / c.h)
     for g, group in enumerate(c.groups):
-        if c.other[g] >= 0 or all(c.mates[j].body < 0 for j in group):
+        if c.other[group[0]] >= 0 or all(c.mates[j].body < 0 for j in group):
             continue
         w = group_wrench(c, s, g)[0]
         for member, j in enumerate(group):

@@ -52,7 +52,7 @@ from dano.contact.pairs import Body, Frame
 from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
 from dano.sim.contact_solve import ContactProblem, group_wrench, solve, solved, untouched
-from dano.sim.groups import each, pair_groups, stack
+from dano.sim.groups import each, pair_groups, signature, stack
 from dano.sim.step import (
     dano_bodies,
     dano_frames,
@@ -108,7 +108,7 @@ motion reaches: a contact made within one step by another contact's impulse larg
 margin is seen one step late."""
 
 
-def _within_reach(shape, reach: float, a: Frame, b: Frame, h: float, delta) -> Array:
+def _within_reach(shape, reach: float | Array, a: Frame, b: Frame, h: float, delta) -> Array:
     """Broad phase of a DANO (predicted frame a) and a primitive (current frame b, moving over the
     step h): whether a point of the DANO can be within the indicator width `delta` plus `BROAD_MARGIN`
     of it. Signed distances are 1-Lipschitz, so no point of the DANO (within `reach` of its centre)
@@ -259,34 +259,50 @@ def _contact_problem(
             return mate.frame, mate.shape
         return start[o], None if mate.dano >= 0 else primitive_shape(world, pair_list[j][2], start[o])
 
-    groups = pair_groups(pair_list, mates, other)
+    danos = [(signature((s.points, s.normals, s.shares)), s.budget) for s in world.danos]
+    groups = pair_groups(pair_list, mates, other, danos=danos)
     contact, supports, patches = [], [], []
     for group in groups:
-        j = group[0]
-        i, p = pair_list[j][0], stack([params.contact[j] for j in group])
+        p = stack([params.contact[j] for j in group])
         frames, shapes = zip(*[partner(j) for j in group], strict=True)
-        sup, patch = _group_points(
-            world, f.bodies, i, other[j], mates[j].dano, p, stack(shapes), stack(frames), start[i], h
-        )
+        j, owners = group[0], [pair_list[j][0] for j in group]
+        sup, patch = _group_points(world, f.bodies, owners, other[j], mates[j].dano, p, stack(shapes), stack(frames),
+                                   start, h)  # fmt: skip
         contact.append(p)
         supports.append(sup)
         patches.append(patch)
-    return ContactProblem(world, params, h, n, pair_list, mates, groups, [other[g[0]] for g in groups], contact,
-                          supports, patches, V, f.M, f.locked, f.frames, f.masses, f.prim_body, kin,
-                          jnp.zeros_like(d.xfrc_applied))  # fmt: skip
+    return ContactProblem(world, params, h, n, pair_list, mates, groups, other, contact, supports, patches, V, f.M,
+                          f.locked, f.frames, f.masses, f.prim_body, kin, jnp.zeros_like(d.xfrc_applied))  # fmt: skip
 
 
-def _group_points(world: World, bodies, i: int, o: int, dano: int, p, shapes, frames, a: Frame, h: float):
-    """A group's supports and patches (stacked): DANO i (predicted frame a) against its partners
-    (shapes and frames stacked; `dano` the index of a DANO partner, else -1; `o` where the partner
-    sits in V, else -1), broad phase included (`_within_reach`: a DANO far from all of a group's
-    primitives costs no point evaluation)."""
+def _owners(world: World, bodies, owners: list[int], start: list[Frame]):
+    """Member m of a group -> its DANO's contact data (without its field: the group's partners are
+    primitives), its predicted frame and its bounding radius (`DanoState.reach`). A group of one
+    DANO closes over them; one of several indexes their stack."""
+    if len(set(owners)) == 1:
+        i = owners[0]
+        return lambda m: (bodies[i], start[i], world.danos[i].reach)
+    distinct = list(dict.fromkeys(owners))
+    which = jnp.asarray([distinct.index(i) for i in owners])
+    table = stack(
+        [(Body(b.points, b.normals, b.weights, b.mass, b.inertia, None, b.com, b.peak), start[i], world.danos[i].reach)
+         for i in distinct for b in (bodies[i],)]
+    )  # fmt: skip
+    return lambda m: jax.tree_util.tree_map(lambda x: x[which[m]], table)
 
-    def one(p, shape, b: Frame) -> tuple[Support, Patch]:
+
+def _group_points(world: World, bodies, owners: list[int], o: int, dano: int, p, shapes, frames, start, h: float):
+    """A group's supports and patches (stacked): each member's DANO (`owners`; `start` the DANOs'
+    predicted frames) against its partner (shapes and frames stacked; `dano` the index of a DANO
+    partner, else -1; `o` >= 0 where the partners are solved for with the DANOs), broad phase
+    included (`_within_reach`: a DANO far from all of a group's primitives costs no point
+    evaluation)."""
+
+    def one(p, shape, b: Frame, a: Frame, body: Body) -> tuple[Support, Patch]:
         if dano >= 0:
-            sup = dano_support(bodies[i], bodies[dano], a, b)
+            sup = dano_support(body, bodies[dano], a, b)
         else:
-            sup = primitive_support(shape, bodies[i], a, p.indicator_width)
+            sup = primitive_support(shape, body, a, p.indicator_width)
         zero = jnp.zeros_like(sup.at)
         if o >= 0:
             patch = Patch(
@@ -299,8 +315,10 @@ def _group_points(world: World, bodies, i: int, o: int, dano: int, p, shapes, fr
         ahead = sup.gain * h * jnp.sum(jnp.broadcast_to(sup.normal, u_b.shape) * u_b, axis=0)
         return Support(sup.at, sup.normal, sup.weight, sup.s0 + ahead, sup.gain, sup.smooth), patch
 
-    if dano >= 0:
-        return each(one, p, shapes, frames)
+    if dano >= 0:  # a DANO partner: a group of its own (`pair_groups`)
+        i = owners[0]
+        return each(lambda p, shape, b: one(p, shape, b, start[i], bodies[i]), p, shapes, frames)
+    own = _owners(world, bodies, owners, start)
 
     def far(*args):
         """No point can touch: weightless, held (gain 0) and outside the law's support (s0 = -2), so
@@ -308,14 +326,14 @@ def _group_points(world: World, bodies, i: int, o: int, dano: int, p, shapes, fr
         zeros = jax.tree_util.tree_map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(one, *args))
         return eqx.tree_at(lambda t: t[0].s0, zeros, jnp.full(zeros[0].s0.shape, -2.0, zeros[0].s0.dtype))
 
-    reach = world.danos[i].reach
-
-    def member(q, shape, b):
+    def member(q, shape, b, m):
         """One pair, its points evaluated only where its partner is within reach."""
-        return jax.lax.cond(_within_reach(shape, reach, a, b, h, q.indicator_width), one, far, q, shape, b)
+        body, a, reach = own(m)
+        near = _within_reach(shape, reach, a, b, h, q.indicator_width)
+        return jax.lax.cond(near, one, far, q, shape, b, a, body)
 
     # one pair at a time (`each`: a loop), so each keeps its own broad phase
-    return each(member, p, shapes, frames)
+    return each(member, p, shapes, frames, jnp.arange(len(owners)))
 
 
 def _integrate(world: World, m: mjx.Model, d: mjx.Data, f: _Free, free, V_next, xfrc) -> mjx.Data:
