@@ -51,6 +51,7 @@ def test_friction_identified_from_the_reference_trajectory(dojo):
 
 
 @pytest.mark.slow
+@pytest.mark.optimized
 def test_reference_soap_slide_friction_is_identified(dojo):
     """The slide experiment with the authors' bluesoap DANO scaled to 9 cm: 120 Hz, 33 frames, 1 mm noise."""
     soap = load_reference(dojo / "colliders" / "bluesoap_collider.npz")
