@@ -13,7 +13,7 @@ from dano.contact import ContactParams
 from dano.fields import BoxField, CapsuleField
 from dano.fields.base import TransformedField
 from dano.math import quat_to_mat
-from dano.sim import DanoBody, Primitive, Scene
+from dano.sim import DanoBody, Scene
 from dano.sim.compile import compile_scene
 from dano.sim.groups import pair_groups as implicit_groups
 from dano.sim.run import Simulation, SimulationError, mechanical_energy
@@ -242,12 +242,12 @@ def test_implicit_step_gradients_match_central_differences(flat_box):
 
 
 @pytest.mark.slow
-def test_pairs_of_two_danos_computed_as_groups_equal_pair_by_pair(monkeypatch):
-    """Two DANOs of one point count, a flat-faced box and a round-ended capsule both turned off
-    their axes, slide on the floor while a free sphere runs into the box. The step computes both
-    floor pairs as one group and both sphere pairs as another (`pair_groups` across DANOs, each
-    pair with its own velocities); pair by pair it must give the same motion, and its derivative
-    w.r.t. friction must match central differences."""
+def test_pairs_of_three_danos_computed_as_groups_equal_pair_by_pair(monkeypatch):
+    """Three DANOs of one point count, a flat-faced box, a copy of it and a round-ended capsule, all
+    turned off their axes, slide on the floor, the box and its copy into the capsule from two sides.
+    The step computes the three floor pairs as one group and both box-capsule pairs as another
+    (`pair_groups` across DANOs, each pair with its own velocities); pair by pair it must give the
+    same motion, and its derivative w.r.t. friction must match central differences."""
     from dano.sim import implicit
 
     def turned(field, R):
@@ -259,11 +259,11 @@ def test_pairs_of_two_danos_computed_as_groups_equal_pair_by_pair(monkeypatch):
     capsule = turned(CapsuleField(0.02, 0.03), TURNED.T)
     lift = [-float(np.min(np.asarray(b.body_points)[:, 2])) - 2e-4 for b in (box, capsule)]
     bodies = (
-        DanoBody("box", box, pos=(0.0, 0.0, lift[0]), vel=(0.4, 0.1, 0.0)),
-        DanoBody("capsule", capsule, pos=(0.3, 0.0, lift[1]), vel=(0.0, -0.3, 0.0), angvel=(0.0, 0.0, 2.0)),
+        DanoBody("box", box, pos=(-0.11, 0.0, lift[0]), vel=(1.0, 0.1, 0.0)),
+        DanoBody("copy", box, pos=(0.0, 0.12, lift[0]), vel=(0.0, -1.0, 0.0)),
+        DanoBody("capsule", capsule, pos=(0.0, 0.0, lift[1]), angvel=(0.0, 0.0, 2.0)),
     )
-    ball = Primitive("ball", "sphere", (0.02,), pos=(-0.12, 0.0, 0.03), mode="free", mass=0.2, vel=(4.0, 0.0, 0.0))
-    scene = Scene(bodies=bodies, primitives=(ball,), integrator="implicit", substeps=1, contact_budget=48)
+    scene = Scene(bodies=bodies, integrator="implicit", substeps=1, contact_budget=48)
     sim = Simulation.from_scene(scene)
     grouped = []
 
@@ -283,14 +283,15 @@ def test_pairs_of_two_danos_computed_as_groups_equal_pair_by_pair(monkeypatch):
     x, jac = derivative(mu0)
     eps = 1e-6
     fd = (derivative(mu0 + eps)[0] - derivative(mu0 - eps)[0]) / (2 * eps)
-    # pairs: box-floor, box-ball, box-capsule, capsule-floor, capsule-ball
-    assert grouped[0] == ((0, 3), (1, 4), (2,))
+    # pairs: box-floor, box-copy, box-capsule, copy-floor, copy-capsule, capsule-floor
+    assert grouped[0] == ((0, 3, 5), (1,), (2, 4))
     monkeypatch.setattr(implicit, "pair_groups", lambda pair_list, *_, **__: tuple((j,) for j in range(len(pair_list))))
     alone = jax.jit(final)(mu0)
 
     np.testing.assert_allclose(x, alone, rtol=1e-10, atol=1e-12)
     qvel = np.asarray(x)[sim.mjx_model.nq :]
-    assert qvel[0] > 0.5 and qvel[12] < 3.5  # the sphere hit the box: the box faster, the sphere slower
+    assert qvel[0] < 1.0 - 0.4 * 9.81 * 0.08 - 0.1  # the box hit the capsule: slower than friction alone makes it
+    assert qvel[13] < -0.1  # the capsule, at rest but for its spin, was pushed along -y by the copy
     assert np.all(np.abs(np.asarray(jac)) < 1e3) and np.max(np.abs(np.asarray(jac))) > 1e-3  # friction matters
     np.testing.assert_allclose(jac, fd, rtol=1e-4, atol=1e-6 * float(np.max(np.abs(fd))))
 

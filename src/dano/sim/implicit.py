@@ -260,14 +260,14 @@ def _contact_problem(
         return start[o], None if mate.dano >= 0 else primitive_shape(world, pair_list[j][2], start[o])
 
     danos = [(signature((s.points, s.normals, s.shares)), s.budget) for s in world.danos]
-    groups = pair_groups(pair_list, mates, other, danos=danos)
+    fields = [signature((s.field, s.com, s.peak)) for s in world.danos]
+    groups = pair_groups(pair_list, mates, other, danos=danos, fields=fields)
     contact, supports, patches = [], [], []
     for group in groups:
         p = stack([params.contact[j] for j in group])
         frames, shapes = zip(*[partner(j) for j in group], strict=True)
-        j, owners = group[0], [pair_list[j][0] for j in group]
-        sup, patch = _group_points(world, f.bodies, owners, other[j], mates[j].dano, p, stack(shapes), stack(frames),
-                                   start, h)  # fmt: skip
+        j, owners, mated = group[0], [pair_list[j][0] for j in group], [mates[j].dano for j in group]
+        sup, patch = _group_points(world, f.bodies, owners, other[j], mated, p, stack(shapes), stack(frames), start, h)
         contact.append(p)
         supports.append(sup)
         patches.append(patch)
@@ -275,32 +275,36 @@ def _contact_problem(
                           f.locked, f.frames, f.masses, f.prim_body, kin, jnp.zeros_like(d.xfrc_applied))  # fmt: skip
 
 
-def _owners(world: World, bodies, owners: list[int], start: list[Frame]):
-    """Member m of a group -> its DANO's contact data (without its field: the group's partners are
-    primitives), its predicted frame and its bounding radius (`DanoState.reach`). A group of one
-    DANO closes over them; one of several indexes their stack."""
+def _owners(world: World, bodies, owners: list[int], start: list[Frame], field: bool = False):
+    """Member m of a group -> its DANO's contact data (without its field unless `field`: the
+    partners of a primitive group do not need it), its predicted frame and its bounding radius
+    (`DanoState.reach`). A group of one DANO closes over them; one of several indexes their stack."""
     if len(set(owners)) == 1:
         i = owners[0]
         return lambda m: (bodies[i], start[i], world.danos[i].reach)
     distinct = list(dict.fromkeys(owners))
     which = jnp.asarray([distinct.index(i) for i in owners])
     table = stack(
-        [(Body(b.points, b.normals, b.weights, b.mass, b.inertia, None, b.com, b.peak), start[i], world.danos[i].reach)
-         for i in distinct for b in (bodies[i],)]
+        [(b if field else Body(b.points, b.normals, b.weights, b.mass, b.inertia, None, b.com, b.peak), start[i],
+          world.danos[i].reach) for i in distinct for b in (bodies[i],)]
     )  # fmt: skip
     return lambda m: jax.tree_util.tree_map(lambda x: x[which[m]], table)
 
 
-def _group_points(world: World, bodies, owners: list[int], o: int, dano: int, p, shapes, frames, start, h: float):
+def _group_points(
+    world: World, bodies, owners: list[int], o: int, mated: list[int], p, shapes, frames, start, h: float
+):
     """A group's supports and patches (stacked): each member's DANO (`owners`; `start` the DANOs'
-    predicted frames) against its partner (shapes and frames stacked; `dano` the index of a DANO
-    partner, else -1; `o` >= 0 where the partners are solved for with the DANOs), broad phase
-    included (`_within_reach`: a DANO far from all of a group's primitives costs no point
-    evaluation)."""
+    predicted frames) against its partner (shapes and frames stacked; `mated` the members' DANO
+    partners, or -1 where they are primitives; `o` >= 0 where the partners are solved for with the
+    DANOs), broad phase included (`_within_reach`: a DANO far from all of a group's primitives costs
+    no point evaluation)."""
+    dano = mated[0]  # the group's kind (`pair_groups`): all DANO partners or none
 
-    def one(p, shape, b: Frame, a: Frame, body: Body) -> tuple[Support, Patch]:
+    def one(p, shape, b: Frame, a: Frame, body: Body, mate: Body | None = None) -> tuple[Support, Patch]:
         if dano >= 0:
-            sup = dano_support(body, bodies[dano], a, b)
+            assert mate is not None  # a DANO partner's body is given
+            sup = dano_support(body, mate, a, b)
         else:
             sup = primitive_support(shape, body, a, p.indicator_width)
         zero = jnp.zeros_like(sup.at)
@@ -315,9 +319,10 @@ def _group_points(world: World, bodies, owners: list[int], o: int, dano: int, p,
         ahead = sup.gain * h * jnp.sum(jnp.broadcast_to(sup.normal, u_b.shape) * u_b, axis=0)
         return Support(sup.at, sup.normal, sup.weight, sup.s0 + ahead, sup.gain, sup.smooth), patch
 
-    if dano >= 0:  # a DANO partner: a group of its own (`pair_groups`)
-        i = owners[0]
-        return each(lambda p, shape, b: one(p, shape, b, start[i], bodies[i]), p, shapes, frames)
+    members = jnp.arange(len(owners))
+    if dano >= 0:  # DANO partners (copies of one object, `pair_groups`): both bodies with their fields
+        own, other = _owners(world, bodies, owners, start, True), _owners(world, bodies, mated, start, True)
+        return each(lambda p, b, m: one(p, None, b, own(m)[1], own(m)[0], other(m)[0]), p, frames, members)
     own = _owners(world, bodies, owners, start)
 
     def far(*args):
@@ -333,7 +338,7 @@ def _group_points(world: World, bodies, owners: list[int], o: int, dano: int, p,
         return jax.lax.cond(near, one, far, q, shape, b, a, body)
 
     # one pair at a time (`each`: a loop), so each keeps its own broad phase
-    return each(member, p, shapes, frames, jnp.arange(len(owners)))
+    return each(member, p, shapes, frames, members)
 
 
 def _integrate(world: World, m: mjx.Model, d: mjx.Data, f: _Free, free, V_next, xfrc) -> mjx.Data:
