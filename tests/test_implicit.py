@@ -1,6 +1,7 @@
 """The rigid body's inertial frame, and the implicit contact step (`dano.sim.implicit`)."""
 
 import dataclasses
+import importlib
 
 import jax
 import jax.numpy as jnp
@@ -247,8 +248,11 @@ def test_pairs_of_three_danos_computed_as_groups_equal_pair_by_pair(monkeypatch)
     turned off their axes, slide on the floor, the box and its copy into the capsule from two sides.
     The step computes the three floor pairs as one group and both box-capsule pairs as another
     (`pair_groups` across DANOs, each pair with its own velocities); pair by pair it must give the
-    same motion, and its derivative w.r.t. friction must match central differences."""
+    same motion, and its derivative w.r.t. friction must match central differences; the explicit
+    step's floor pairs, grouped across the DANOs too, the same wrenches as pair by pair."""
     from dano.sim import implicit
+
+    step_module = importlib.import_module("dano.sim.step")  # `dano.sim.step` is also the step function
 
     def turned(field, R):
         R, _ = np.linalg.qr(R)
@@ -272,6 +276,10 @@ def test_pairs_of_three_danos_computed_as_groups_equal_pair_by_pair(monkeypatch)
         return grouped[-1]
 
     monkeypatch.setattr(implicit, "pair_groups", recorded)
+    monkeypatch.setattr(step_module, "pair_groups", recorded)
+
+    def contacts():  # the explicit step's pairs (eqs. 11-16) at the start: the floor pairs press
+        return jax.jit(lambda: step_module.explicit_contacts(sim.world, sim.params, sim.mjx_model, sim.data))()
 
     def final(mu):
         contact = tuple(dataclasses.replace(p, sliding_friction=mu) for p in sim.params.contact)
@@ -283,12 +291,19 @@ def test_pairs_of_three_danos_computed_as_groups_equal_pair_by_pair(monkeypatch)
     x, jac = derivative(mu0)
     eps = 1e-6
     fd = (derivative(mu0 + eps)[0] - derivative(mu0 - eps)[0]) / (2 * eps)
-    # pairs: box-floor, box-copy, box-capsule, copy-floor, copy-capsule, capsule-floor
-    assert grouped[0] == ((0, 3, 5), (1,), (2, 4))
-    monkeypatch.setattr(implicit, "pair_groups", lambda pair_list, *_, **__: tuple((j,) for j in range(len(pair_list))))
+    explicit = contacts()
+    # pairs: box-floor, box-copy, box-capsule, copy-floor, copy-capsule, capsule-floor; the explicit
+    # step groups no pair of two DANOs
+    assert set(grouped) == {((0, 3, 5), (1,), (2, 4)), ((0, 3, 5), (1,), (2,), (4,))}
+    alone_groups = lambda pair_list, *_, **__: tuple((j,) for j in range(len(pair_list)))  # noqa: E731
+    monkeypatch.setattr(implicit, "pair_groups", alone_groups)
+    monkeypatch.setattr(step_module, "pair_groups", alone_groups)
     alone = jax.jit(final)(mu0)
 
     np.testing.assert_allclose(x, alone, rtol=1e-10, atol=1e-12)
+    assert min(float(explicit[0][j, 2]) for j in (0, 3, 5)) > 0.1  # every floor pair pushes up
+    for a, b in zip(explicit, contacts(), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
     qvel = np.asarray(x)[sim.mjx_model.nq :]
     assert qvel[0] < 1.0 - 0.4 * 9.81 * 0.08 - 0.1  # the box hit the capsule: slower than friction alone makes it
     assert qvel[13] < -0.1  # the capsule, at rest but for its spin, was pushed along -y by the copy

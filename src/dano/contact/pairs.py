@@ -62,6 +62,11 @@ class Body(eqx.Module):
     com: Float[Array, " 3"]
     peak: Float[Array, ""]
 
+    def without_field(self) -> "Body":
+        """The same body without its field: all that contact with a primitive needs, and what DANOs
+        of different fields can be stacked as (`dano.sim.groups.member_lookup`)."""
+        return Body(self.points, self.normals, self.weights, self.mass, self.inertia, None, self.com, self.peak)
+
 
 class PointSet(eqx.Module):
     """Where a DANO touches its partner: world points `at` (3, k), their overlaps `psi` (k,) in kg,

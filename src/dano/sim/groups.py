@@ -1,5 +1,5 @@
-"""Pairs computed as one: a DANO's partners of one shape kind stacked, so a step's program holds
-one copy of the contact per group instead of one per pair.
+"""Pairs computed as one: partners of one shape kind stacked (a DANO's, or several DANOs' whose
+points agree), so a step's program holds one copy of the contact per group instead of one per pair.
 
 A robot brings many partners of a few kinds (the Panda: 9 convex meshes of 200 or 300 planes and
 8 finger boxes). Each pair unrolled in Python made the step's program grow with the pairs: the
@@ -9,15 +9,16 @@ one loop over the group (`each`), its 4 groups lower in 3.8 s and compile in 21.
 in 1.9 s instead of 2.8 s, and give the same trajectory; with the explicit step (100 frames) 3.3 s
 and 17.9 s become 2.4 s and 12.1 s, the run the same (1.15 s).
 
-The implicit step also groups across DANOs whose points agree in size and budget (`pair_groups`'s
-`danos`), each pair keeping its own velocities: the paper's Fig. 5 (two 5000-point bunnies and a
-free sphere, 750 frames, `dano demo`'s scene) has five pairs in three groups instead of five, and
-its rollout's program 17 800 StableHLO lines instead of 21 318, compiled in 10.5 s instead of
-14.0 s (medians of three, one after another), to the same trajectory (7e-13 m). Pairs of two
-DANOs are grouped where both sides agree, fields included (`fields`: copies of one object): with a
-third bunny in that scene (nine pairs in four groups, one of them its three bunny-bunny pairs) the
-program has 19 248 lines instead of 34 841 and compiles in 14.8 s instead of 36.6 s (one run each,
-run 9.3 vs 8.5 s), to the same trajectory (6e-13 m).
+Both steps also group across DANOs whose points agree in size (and, for the implicit step, budget:
+`pair_groups`'s `danos`), each pair keeping its own DANO and velocities (`member_lookup`): the
+paper's Fig. 5 (two 5000-point bunnies and a free sphere, 750 frames, `dano demo`'s scene) has five
+pairs in three groups instead of five in the implicit step, and its rollout's program 17 800
+StableHLO lines instead of 21 318, compiled in 10.5 s instead of 14.0 s (medians of three, one
+after another), to the same trajectory (7e-13 m). Pairs of two DANOs are grouped where both sides
+agree, fields included (`fields`: copies of one object): with a third bunny in that scene (nine
+pairs in four groups, one of them its three bunny-bunny pairs) the program has 19 248 lines instead
+of 34 841 and compiles in 14.8 s instead of 36.6 s (one run each, run 9.3 vs 8.5 s), to the same
+trajectory (6e-13 m).
 """
 
 from collections.abc import Callable, Sequence
@@ -62,6 +63,20 @@ def signature(tree) -> tuple:
     trees to be stacked (`stack`) and computed by one program."""
     leaves, structure = jax.tree_util.tree_flatten(tree)
     return structure, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves)
+
+
+def member_lookup(keys: Sequence[int], value: Callable[[int], Any]) -> Callable[[Any], Any]:
+    """Inside a group's loop (`each`): member m -> value(keys[m]) (a pytree per key, e.g. a DANO's
+    contact data and frame). Closed over where every member has one key (one DANO's group, as a
+    program without groups across DANOs has it); else read from the stack of the distinct keys'
+    values, each stored once however many members share it."""
+    if len(set(keys)) == 1:
+        one = value(keys[0])
+        return lambda m: one
+    distinct = list(dict.fromkeys(keys))
+    which = jnp.asarray([distinct.index(k) for k in keys])
+    table = stack([value(k) for k in distinct])
+    return lambda m: jax.tree_util.tree_map(lambda x: x[which[m]], table)
 
 
 def stack(trees: Sequence):

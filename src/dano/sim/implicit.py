@@ -52,7 +52,7 @@ from dano.contact.pairs import Body, Frame
 from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
 from dano.sim.contact_solve import ContactProblem, group_wrench, solve, solved, untouched
-from dano.sim.groups import each, pair_groups, signature, stack
+from dano.sim.groups import each, member_lookup, pair_groups, signature, stack
 from dano.sim.step import (
     dano_bodies,
     dano_frames,
@@ -278,17 +278,12 @@ def _contact_problem(
 def _owners(world: World, bodies, owners: list[int], start: list[Frame], field: bool = False):
     """Member m of a group -> its DANO's contact data (without its field unless `field`: the
     partners of a primitive group do not need it), its predicted frame and its bounding radius
-    (`DanoState.reach`). A group of one DANO closes over them; one of several indexes their stack."""
-    if len(set(owners)) == 1:
-        i = owners[0]
-        return lambda m: (bodies[i], start[i], world.danos[i].reach)
-    distinct = list(dict.fromkeys(owners))
-    which = jnp.asarray([distinct.index(i) for i in owners])
-    table = stack(
-        [(b if field else Body(b.points, b.normals, b.weights, b.mass, b.inertia, None, b.com, b.peak), start[i],
-          world.danos[i].reach) for i in distinct for b in (bodies[i],)]
-    )  # fmt: skip
-    return lambda m: jax.tree_util.tree_map(lambda x: x[which[m]], table)
+    (`DanoState.reach`), by `member_lookup`."""
+
+    def value(i):
+        return bodies[i] if field else bodies[i].without_field(), start[i], world.danos[i].reach
+
+    return member_lookup(owners, value)
 
 
 def _group_points(

@@ -25,7 +25,7 @@ from dano.contact.overlap import Primitive
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
 from dano.math import normalize, quat_to_mat
-from dano.sim.groups import each, pair_groups, stack
+from dano.sim.groups import each, member_lookup, pair_groups, signature, stack
 from dano.sim.world import LinkGeom, Params, World, pairs
 
 
@@ -226,20 +226,27 @@ def explicit_groups(world: World, params: Params, d: mjx.Data, mocap_vel=None, k
     pair_list = pairs(world)
     mates = partners(world, d, mocap_vel, kin)
     frames, bodies = dano_frames(world, d), dano_bodies(world, params)
-    # a DANO partner alone; links apart from primitives (only links have a broad phase: `Partner.radius`)
+    # across DANOs whose points agree; a DANO partner alone; links apart from primitives (only links
+    # have a broad phase: `Partner.radius`)
+    danos = [signature((s.points, s.normals, s.shares)) for s in world.danos]
+    apart = [m.radius > 0 for m in mates]
     out = []
-    for group in pair_groups(pair_list, mates, [m.dano for m in mates], [m.radius > 0 for m in mates]):
+    for group in pair_groups(pair_list, mates, [m.dano for m in mates], apart, danos=danos):
         mate = mates[group[0]]
         i, dano, broad = pair_list[group[0]][0], mate.dano, mate.radius > 0
+        owner = member_lookup([pair_list[j][0] for j in group], lambda i: (bodies[i].without_field(), frames[i]))
 
-        def one(p, shape, b, inv_mass, radius, i=i, dano=dano, broad=broad):
+        def one(p, shape, b, inv_mass, radius, m, i=i, dano=dano, broad=broad, owner=owner):
             radius = radius if broad else 0.0  # no broad phase: none traced
-            return explicit_pair_wrench(world, p, shape, b, inv_mass, radius, dano, bodies, frames, i)
+            if dano >= 0:  # a DANO partner: a group of its own (`pair_groups`)
+                return explicit_pair_wrench(world, p, shape, b, inv_mass, radius, dano, bodies, frames, i)
+            body, a = owner(m)
+            return explicit_pair_wrench(world, p, shape, b, inv_mass, radius, -1, (body,), (a,), 0)
 
         shapes = stack([mates[j].shape for j in group]) if dano < 0 else None
         radii = stack([mates[j].radius for j in group])
         inputs = (stack([params.contact[j] for j in group]), shapes, stack([mates[j].frame for j in group]))
-        wrench, at = each(one, *inputs, stack([mates[j].inv_mass for j in group]), radii)
+        wrench, at = each(one, *inputs, stack([mates[j].inv_mass for j in group]), radii, jnp.arange(len(group)))
         out.append((group, [mates[j] for j in group], wrench, at))
     return frames, out
 
