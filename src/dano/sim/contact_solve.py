@@ -136,9 +136,7 @@ def scatter_pair(c: ContactProblem, g: int, grad: Array, H: Array) -> tuple[Arra
     idx = slots(c, g)
     size = c.V_free.shape[0]
     if np.all(idx == idx[0]):
-        grad, H, idx = jnp.sum(grad, axis=0), jnp.sum(H, axis=0), idx[0]
-        at = jnp.asarray(idx)
-        return jnp.zeros(size).at[at].add(grad), jnp.zeros((size, size)).at[at[:, None], at[None, :]].add(H)
+        grad, H, idx = jnp.sum(grad, axis=0, keepdims=True), jnp.sum(H, axis=0, keepdims=True), idx[:1]
     at = jnp.asarray(idx)
     return jnp.zeros(size).at[at].add(grad), jnp.zeros((size, size)).at[at[:, :, None], at[:, None, :]].add(H)
 

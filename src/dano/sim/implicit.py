@@ -316,8 +316,13 @@ def _group_points(
 
     members = jnp.arange(len(owners))
     if dano >= 0:  # DANO partners (copies of one object, `pair_groups`): both bodies with their fields
-        own, other = _owners(world, bodies, owners, start, True), _owners(world, bodies, mated, start, True)
-        return each(lambda p, b, m: one(p, None, b, own(m)[1], own(m)[0], other(m)[0]), p, frames, members)
+        own, mate_of = _owners(world, bodies, owners, start, True), _owners(world, bodies, mated, start, True)
+
+        def dano_member(q, b, m):  # the partner's frame is `b` (its predicted one)
+            body, a, _ = own(m)
+            return one(q, None, b, a, body, mate_of(m)[0])
+
+        return each(dano_member, p, frames, members)
     own = _owners(world, bodies, owners, start)
 
     def far(*args):
