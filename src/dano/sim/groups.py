@@ -65,6 +65,12 @@ def signature(tree) -> tuple:
     return structure, tuple((jnp.shape(x), jnp.result_type(x)) for x in leaves)
 
 
+def points_key(state) -> tuple:
+    """A DANO's points as `pair_groups` compares them (`danos`): their structure, shapes and dtypes
+    (`DanoState`'s points, normals and shares)."""
+    return signature((state.points, state.normals, state.shares))
+
+
 def member_lookup(keys: Sequence[int], value: Callable[[int], Any]) -> Callable[[Any], Any]:
     """Inside a group's loop (`each`): member m -> value(keys[m]) (a pytree per key, e.g. a DANO's
     contact data and frame). Closed over where every member has one key (one DANO's group, as a

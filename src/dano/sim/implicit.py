@@ -52,7 +52,7 @@ from dano.contact.pairs import Body, Frame
 from dano.contact.support import Support, dano_support, primitive_support
 from dano.math import cross_matrix, normalize, quat_exp, quat_mul, quat_to_mat
 from dano.sim.contact_solve import ContactProblem, group_wrench, solve, solved, untouched
-from dano.sim.groups import each, member_lookup, pair_groups, signature, stack
+from dano.sim.groups import each, member_lookup, pair_groups, points_key, signature, stack
 from dano.sim.step import (
     dano_bodies,
     dano_frames,
@@ -259,7 +259,7 @@ def _contact_problem(
             return mate.frame, mate.shape
         return start[o], None if mate.dano >= 0 else primitive_shape(world, pair_list[j][2], start[o])
 
-    danos = [(signature((s.points, s.normals, s.shares)), s.budget) for s in world.danos]
+    danos = [(points_key(s), s.budget) for s in world.danos]
     fields = [signature((s.field, s.com, s.peak)) for s in world.danos]
     groups = pair_groups(pair_list, mates, other, danos=danos, fields=fields)
     contact, supports, patches = [], [], []

@@ -25,7 +25,7 @@ from dano.contact.overlap import Primitive
 from dano.contact.pairs import Body, Frame, PointSet, dano_points, near, primitive_points, reaction
 from dano.contact.wrench import ContactParams, contact_wrench
 from dano.math import normalize, quat_to_mat
-from dano.sim.groups import each, member_lookup, pair_groups, signature, stack
+from dano.sim.groups import each, member_lookup, pair_groups, points_key, stack
 from dano.sim.world import LinkGeom, Params, World, pairs
 
 
@@ -228,7 +228,7 @@ def explicit_groups(world: World, params: Params, d: mjx.Data, mocap_vel=None, k
     frames, bodies = dano_frames(world, d), dano_bodies(world, params)
     # across DANOs whose points agree; a DANO partner alone; links apart from primitives (only links
     # have a broad phase: `Partner.radius`)
-    danos = [signature((s.points, s.normals, s.shares)) for s in world.danos]
+    danos = [points_key(s) for s in world.danos]
     apart = [m.radius > 0 for m in mates]
     out = []
     for group in pair_groups(pair_list, mates, [m.dano for m in mates], apart, danos=danos):

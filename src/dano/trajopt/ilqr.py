@@ -290,13 +290,12 @@ class _AugmentedILQR(AbstractIterativeSolver[_InnerState]):
         (regularisation raised until Q_uu is positive definite), backtracking line search."""
         fn, o, (xs, us, reg, iterations), J = self.fn, self.o, state.it, state.J
         iterations += 1
-        if state.expansion is None:
+        expansion = state.expansion
+        if expansion is None:
             # The cost's expansion first: on the first iteration it compiles here while the
             # dynamics Jacobians still compile in the thread `compile_ahead` started, instead of after.
             costs = fn.call(expand, xs, us, *self.mult)
             expansion = (*jacobians_along(fn.flow, xs, us, o.jacobian_batch, o.lanes), *costs)
-        else:
-            expansion = state.expansion
         A, B, g, H, gT, HT = expansion
         while True:
             k, K, dV, failed = fn.call(backward, A, B, g, H, gT, HT, reg)
